@@ -1,0 +1,1 @@
+"""Acquisition: sessions, the cycle loop, the MCAP recorder, supervision and the daemon."""

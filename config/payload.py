@@ -1,0 +1,95 @@
+"""Payload description (``config/payloads/<name>.toml``, contracts §3)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from drivegain.config._toml import Table, read_toml
+from drivegain.config.inertia import physical_violation
+
+#: Payload parameter names in the order of the regressor's inertial columns of one link.
+PAYLOAD_PARAMS = ("XX", "XY", "XZ", "YY", "YZ", "ZZ", "MX", "MY", "MZ", "M")
+_KNOWN_ALIASES = {
+    "mass": "M",
+    "m": "M",
+    "mx": "MX",
+    "my": "MY",
+    "mz": "MZ",
+    "xx": "XX",
+    "xy": "XY",
+    "xz": "XZ",
+    "yy": "YY",
+    "yz": "YZ",
+    "zz": "ZZ",
+}
+
+
+@dataclass(frozen=True)
+class Payload:
+    """A payload fixed to a link (frame of the payload = frame of that link).
+
+    ``values`` holds the 10 inertial parameters in :data:`PAYLOAD_PARAMS` order (kg·m², kg·m,
+    kg); entries not given in the file are NaN. ``known`` lists the names treated as known.
+    ``link`` is 1-based as in the file.
+    """
+
+    name: str
+    link: int
+    values: np.ndarray
+    known: tuple[str, ...]
+    source: Path | None = None
+
+    @property
+    def mass(self) -> float:
+        return float(self.values[9])
+
+    def known_mask(self) -> np.ndarray:
+        """Boolean mask over :data:`PAYLOAD_PARAMS` of the known parameters."""
+        return np.array([p in self.known for p in PAYLOAD_PARAMS])
+
+
+def load_payload(path: str | Path, n_links: int | None = None) -> Payload:
+    """Load and validate a payload file.
+
+    Parameters
+    ----------
+    path
+        The TOML file.
+    n_links
+        Number of links of the robot, to check ``link`` against (optional).
+    """
+    p = Path(path)
+    root = Table(read_toml(p), p)
+    root.reject_unknown({"payload"})
+    t = root.table("payload")
+    t.reject_unknown({"name", "link", "mass", "first_moment", "inertia", "known"})
+    link = t.get_int("link", minimum=1)
+    if n_links is not None and link > n_links:
+        raise t.error("link", f"the robot has {n_links} links, got {link}")
+    values = np.full(10, np.nan)
+    if t.has("mass"):
+        values[9] = t.get_float("mass", positive=True)
+    if t.has("first_moment"):
+        values[6:9] = t.get_floats("first_moment", length=3)
+    if t.has("inertia"):
+        values[0:6] = t.get_floats("inertia", length=6)
+    known = []
+    for name in t.get_strs("known", default=["mass"]):
+        canon = _KNOWN_ALIASES.get(name.lower())
+        if canon is None:
+            raise t.error("known", f"unknown parameter {name!r} (use mass, MX.., XX..)")
+        if np.isnan(values[PAYLOAD_PARAMS.index(canon)]):
+            raise t.error("known", f"{name!r} is listed as known but has no value")
+        known.append(canon)
+    if not known:
+        raise t.error("known", "at least one parameter (normally the mass) must be known")
+    if not np.any(np.isnan(values)):
+        why = physical_violation(values[9], values[6:9], values[0:6])
+        if why is not None:
+            raise t.error("inertia", why)
+    elif np.isnan(values[9]):
+        raise t.error("mass", "missing")
+    return Payload(name=t.get_str("name"), link=link, values=values, known=tuple(known), source=p)

@@ -1,0 +1,3 @@
+from drivegain.cli import main
+
+raise SystemExit(main())

@@ -1,0 +1,184 @@
+"""The ``drivegain`` command line (contracts §1).
+
+Every subcommand's options are declared here; the work is done by a ``commands`` module of the
+component that owns it, imported only when that subcommand runs (start-up stays fast and the
+optional heavy imports stay out of ``--help``).
+
+Exit status: 0 success, 2 bad input (one line on stderr naming the file, key or value), 1 any
+other failure. No traceback unless ``--debug``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+import traceback
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+from drivegain import __version__
+from drivegain.errors import DrivegainError, InputError, OperatorStop
+
+Handler = Callable[[argparse.Namespace], int]
+
+#: subcommand -> "module:function" that implements it
+HANDLERS = {
+    "model info": "drivegain.identify.commands:model_info",
+    "demo": "drivegain.acquire.commands:demo",
+    "excite": "drivegain.excite.commands:excite",
+    "acquire": "drivegain.acquire.commands:acquire",
+    "daemon": "drivegain.acquire.commands:daemon",
+    "identify": "drivegain.identify.pipeline:identify_command",
+    "convert csv": "drivegain.identify.convert:convert_csv_command",
+}
+
+
+class NotAvailable(DrivegainError):
+    """A subcommand whose implementation is not part of this build yet."""
+
+
+def _handler(name: str) -> Handler:
+    module_name, func = HANDLERS[name].split(":")
+    try:
+        module = importlib.import_module(module_name)
+        handler: Handler = getattr(module, func)
+    except ModuleNotFoundError as exc:
+        if not (exc.name and module_name.startswith(exc.name)):
+            raise  # a missing dependency, not a missing component
+        raise NotAvailable(f"'drivegain {name}' is not yet available in this version") from None
+    except AttributeError:
+        raise NotAvailable(f"'drivegain {name}' is not yet available in this version") from None
+    return handler
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of the ``drivegain`` command."""
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--debug", action="store_true", help="show tracebacks and debug logs")
+    parser = argparse.ArgumentParser(
+        prog="drivegain",
+        description="Identify robot drive gains and dynamics (IDIM-WTLS) from CANopen runs.",
+        parents=[common],
+    )
+    parser.add_argument("--version", action="version", version=f"drivegain {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+
+    p = sub.add_parser(
+        "demo", parents=[common], help="whole pipeline on the simulated robot (no hardware)"
+    )
+    p.add_argument("--out", type=Path, default=Path("drivegain-demo"), help="output folder")
+    p.add_argument("--seed", type=int, default=1, help="seed of the simulated noise")
+    p.set_defaults(handler="demo")
+
+    p = sub.add_parser("excite", parents=[common], help="optimise an excitation trajectory")
+    p.add_argument("--robot", type=Path, required=True, help="robot TOML")
+    p.add_argument("--out", type=Path, required=True, help="trajectory JSON to write")
+    p.add_argument("--payload", type=Path, help="payload TOML (adds the WTLS criterion)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (same seed, same file)")
+    p.add_argument("--budget", type=float, default=60.0, help="time budget, s")
+    p.add_argument("--harmonics", type=int, default=5, help="harmonics per joint")
+    p.add_argument("--base-frequency", type=float, default=0.1, help="base frequency, Hz")
+    p.add_argument("--periods", type=int, default=3, help="periods to run")
+    p.add_argument(
+        "--criterion", choices=("cond", "logdet"), default="cond", help="optimality criterion"
+    )
+    p.add_argument("--plot", type=Path, help="PNG of the joint trajectories (default: beside --out)")
+    p.set_defaults(handler="excite")
+
+    p = sub.add_parser("acquire", parents=[common], help="one acquisition session (foreground)")
+    p.add_argument("--config", type=Path, required=True, help="acquisition TOML")
+    p.add_argument("--trajectory", type=Path, required=True, help="trajectory JSON")
+    p.add_argument("--out", type=Path, required=True, help="MCAP log to write")
+    p.add_argument("--payload", type=Path, help="payload TOML fixed to the robot for this run")
+    p.add_argument("--label", help="run label (default: unloaded/loaded)")
+    p.set_defaults(handler="acquire")
+
+    p = sub.add_parser("daemon", parents=[common], help="the long-running acquisition service")
+    p.add_argument("--config", type=Path, required=True, help="acquisition TOML")
+    p.set_defaults(handler="daemon")
+
+    p = sub.add_parser("identify", parents=[common], help="offline identification from logs")
+    p.add_argument("--robot", type=Path, required=True, help="robot TOML")
+    p.add_argument("--unloaded", type=Path, required=True, help="run a (no payload), MCAP")
+    p.add_argument("--loaded", type=Path, help="run b (with the payload), MCAP")
+    p.add_argument("--payload", type=Path, help="payload TOML of run b")
+    p.add_argument(
+        "--gains", default="apriori", help="'apriori', a TOML with values = [...], or a report.json"
+    )
+    p.add_argument("--validate", type=Path, help="a third run with a second payload (Table 5)")
+    p.add_argument("--validate-payload", type=Path, help="payload TOML of the --validate run")
+    p.add_argument("--friction", choices=("physical", "paper"), help="coupled-wrist friction form")
+    p.add_argument("--alpha", type=float, help="fix the V column weight instead of searching")
+    p.add_argument("--cutoff", type=float, help="low-pass cut-off of positions, Hz")
+    p.add_argument("--decimate", type=int, help="decimation factor")
+    p.add_argument("--out", type=Path, required=True, help="report folder")
+    p.set_defaults(handler="identify")
+
+    p = sub.add_parser("convert", parents=[common], help="import data recorded elsewhere")
+    conv = p.add_subparsers(dest="format", metavar="FORMAT", required=True)
+    c = conv.add_parser("csv", parents=[common], help="CSV positions + currents -> MCAP")
+    c.add_argument("--positions", type=Path, required=True, help="CSV of positions, rad")
+    c.add_argument("--currents", type=Path, required=True, help="CSV of currents (A) or torques")
+    c.add_argument("--rate", type=float, required=True, help="sample rate, Hz")
+    c.add_argument("--motor-side", action="store_true", help="positions/currents are motor-side")
+    c.add_argument(
+        "--torque",
+        action="store_true",
+        help="the current file holds motor torques (N·m) rather than current references (A)",
+    )
+    c.add_argument("--robot", type=Path, required=True, help="robot TOML")
+    c.add_argument("--run", default="unloaded", help="run label")
+    c.add_argument("--out", type=Path, required=True, help="MCAP log to write")
+    c.set_defaults(handler="convert csv")
+
+    p = sub.add_parser("model", parents=[common], help="inspect the robot model")
+    msub = p.add_subparsers(dest="model_command", metavar="ACTION", required=True)
+    m = msub.add_parser("info", parents=[common], help="joints, parameters, base parameters")
+    m.add_argument("--robot", type=Path, required=True, help="robot TOML")
+    m.add_argument("--samples", type=int, default=300, help="random states for cond(W)")
+    m.add_argument("--seed", type=int, default=0, help="seed of the random states")
+    m.set_defaults(handler="model info")
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the command line; returns the exit status."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.DEBUG if args.debug else logging.INFO,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+        stream=sys.stderr,
+    )
+    try:
+        return int(_handler(args.handler)(args))
+    except InputError as exc:
+        if args.debug:
+            traceback.print_exc()
+        print(f"drivegain: error: {exc}", file=sys.stderr)
+        return 2
+    except OperatorStop as exc:
+        print(f"drivegain: stopped: {exc}", file=sys.stderr)
+        return 0
+    except DrivegainError as exc:
+        if args.debug:
+            traceback.print_exc()
+        print(f"drivegain: error: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("drivegain: interrupted", file=sys.stderr)
+        return 130
+    except Exception as exc:  # a bug: one line for users, the traceback with --debug
+        if args.debug:
+            traceback.print_exc()
+        print(
+            f"drivegain: internal error: {type(exc).__name__}: {exc} (run with --debug)",
+            file=sys.stderr,
+        )
+        return 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

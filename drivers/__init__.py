@@ -1,0 +1,1 @@
+"""CANopen CiA 402 drives (master side), simulated drives and robot, CAN bus factory."""

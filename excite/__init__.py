@@ -1,0 +1,1 @@
+"""Excitation trajectories: Fourier series optimised for identification, ruckig approach/retreat."""

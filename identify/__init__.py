@@ -1,0 +1,1 @@
+"""Offline identification: robot model, regressors, base parameters, estimators, reports."""
