@@ -27,7 +27,7 @@ __all__ = [
 
 
 def resource_path(name: str) -> Path:
-    """Path of a file shipped in ``drivegain.config``, e.g. ``"tx40.toml"`` or ``"payloads/x.toml"``.
+    """Path of a file shipped in ``drivegain.config``, e.g. ``"payloads/x.toml"``.
 
     Raises
     ------

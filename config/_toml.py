@@ -129,4 +129,6 @@ class Table:
         """Reject keys that are not in ``allowed`` (catches mistyped keys)."""
         for name in self.data:
             if name not in allowed:
-                raise self.error(name, f"unknown key (expected one of {', '.join(sorted(allowed))})")
+                raise self.error(
+                    name, f"unknown key (expected one of {', '.join(sorted(allowed))})"
+                )

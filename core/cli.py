@@ -84,7 +84,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--criterion", choices=("cond", "logdet"), default="cond", help="optimality criterion"
     )
-    p.add_argument("--plot", type=Path, help="PNG of the joint trajectories (default: beside --out)")
+    p.add_argument(
+        "--plot", type=Path, help="PNG of the joint trajectories (default: beside --out)"
+    )
     p.set_defaults(handler="excite")
 
     p = sub.add_parser("acquire", parents=[common], help="one acquisition session (foreground)")

@@ -21,7 +21,9 @@ def model_info(args: argparse.Namespace) -> int:
     print(f"{'joint':<6}{'node':>5}{'ratio':>8}{'gain':>9}  limits (rad)")
     for j in robot.joints:
         lo, hi = j.position_limits
-        print(f"{j.name:<6}{j.node_id:>5}{j.gear_ratio:>8.1f}{j.apriori_gain:>9.2f}  [{lo:+.3f}, {hi:+.3f}]")
+        print(
+            f"{j.name:<6}{j.node_id:>5}{j.gear_ratio:>8.1f}{j.apriori_gain:>9.2f}  [{lo:+.3f}, {hi:+.3f}]"
+        )
     for c in robot.couplings:
         m = robot.joints[c.motor].name
         print(f"coupling: motor of {m} also turns with {robot.joints[c.joint].name}")

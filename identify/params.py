@@ -73,7 +73,7 @@ def with_payload(robot: Robot, chi: np.ndarray, payload: Payload) -> np.ndarray:
 
 
 def to_pinocchio_order(inertial10: np.ndarray) -> np.ndarray:
-    """``[XX XY XZ YY YZ ZZ MX MY MZ M]`` -> Pinocchio's ``[m mx my mz Ixx Ixy Iyy Ixz Iyz Izz]``."""
+    """Our inertial order -> Pinocchio's ``[m mx my mz Ixx Ixy Iyy Ixz Iyz Izz]``."""
     xx, xy, xz, yy, yz, zz, mx, my, mz, m = inertial10
     return np.array([m, mx, my, mz, xx, xy, yy, xz, yz, zz])
 
