@@ -22,7 +22,8 @@ def model_info(args: argparse.Namespace) -> int:
     for j in robot.joints:
         lo, hi = j.position_limits
         print(
-            f"{j.name:<6}{j.node_id:>5}{j.gear_ratio:>8.1f}{j.apriori_gain:>9.2f}  [{lo:+.3f}, {hi:+.3f}]"
+            f"{j.name:<6}{j.node_id:>5}{j.gear_ratio:>8.1f}{j.apriori_gain:>9.2f}"
+            f"  [{lo:+.3f}, {hi:+.3f}]"
         )
     for c in robot.couplings:
         m = robot.joints[c.motor].name
