@@ -132,6 +132,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     c.add_argument("--robot", type=Path, required=True, help="robot TOML")
     c.add_argument("--run", default="unloaded", help="run label")
+    c.add_argument("--payload", type=Path, help="payload TOML fixed to the robot during the run")
     c.add_argument("--out", type=Path, required=True, help="MCAP log to write")
     c.set_defaults(handler="convert csv")
 

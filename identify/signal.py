@@ -1,0 +1,396 @@
+"""Signal processing of identification data (paper §2.2, model.md "Data processing").
+
+Velocities and accelerations come from the measured positions by a zero-phase Butterworth
+low-pass and central differences (Gautier's "derivative band-pass filtering"). The torque side
+(current references) and every column of the observation matrix are then low-pass filtered and
+down-sampled alike ("parallel decimation", :func:`scipy.signal.decimate`), which removes the
+high-frequency content the rigid-body model does not explain while keeping ``Y = W χ`` exact
+(filtering is linear and the same on both sides). Finally the borders, where the zero-phase
+filters start from padded data, are trimmed.
+
+All time series have time along axis 0; rates are in Hz.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy import signal as sps
+
+from drivegain.errors import DataError, InputError
+
+#: order of the Chebyshev I low-pass :func:`scipy.signal.decimate` applies (its default)
+DECIMATE_IIR_ORDER = 8
+#: largest factor one IIR decimation stage takes (SciPy advises several calls beyond 13)
+MAX_STAGE = 13
+#: multiple of the trajectory's highest harmonic used as the position cut-off
+BANDWIDTH_MULTIPLE = 10.0
+#: cut-off when the trajectory's bandwidth is unknown: rate / 20 (so that the central
+#: differences are accurate to about 1 % even at the cut-off), at most this, Hz
+MAX_DEFAULT_CUTOFF_HZ = 50.0
+# Relative level below which a filter's impulse response counts as settled (border trimming).
+# filtfilt starts from the steady state of an odd extension, so the actual border error is far
+# below the impulse response's envelope: with 1e-3 here, the trimmed interior matches the
+# processing of a much longer record to about 1e-4 (tests/identify_data/test_signal.py).
+_SETTLED = 1e-3
+# Columns filtered at a time by parallel_decimate (bounds the temporaries of filtfilt).
+_COLUMN_BLOCK = 256
+
+
+@dataclass(frozen=True, kw_only=True)
+class FilterSettings:
+    """How positions are filtered and the data decimated.
+
+    Attributes
+    ----------
+    cutoff_hz
+        Cut-off frequency of the zero-phase Butterworth low-pass on positions, Hz.
+    order
+        Order of that Butterworth filter (the forward-backward pass doubles it).
+    decimate
+        Decimation factor (1: no decimation).
+    trim
+        Samples dropped at each border after decimation (filter transients).
+    """
+
+    cutoff_hz: float
+    order: int = 4
+    decimate: int
+    trim: int
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.cutoff_hz) and self.cutoff_hz > 0):
+            raise InputError(f"must be a positive number of Hz, got {self.cutoff_hz}", key="cutoff")
+        if isinstance(self.order, bool) or not isinstance(self.order, int) or self.order < 1:
+            raise InputError(f"must be an integer >= 1, got {self.order!r}", key="order")
+        if isinstance(self.decimate, bool) or not isinstance(self.decimate, int):
+            raise InputError(f"must be an integer >= 1, got {self.decimate!r}", key="decimate")
+        if self.decimate < 1:
+            raise InputError(f"must be an integer >= 1, got {self.decimate}", key="decimate")
+        if isinstance(self.trim, bool) or not isinstance(self.trim, int) or self.trim < 0:
+            raise InputError(f"must be an integer >= 0, got {self.trim!r}", key="trim")
+
+    def output_rate(self, rate_hz: float) -> float:
+        """Sample rate after decimation, Hz."""
+        return rate_hz / self.decimate
+
+
+def _check_rate(rate_hz: float) -> None:
+    if not (math.isfinite(rate_hz) and rate_hz > 0):
+        raise InputError(f"must be a positive number of Hz, got {rate_hz}", key="rate")
+
+
+def _check_cutoff(cutoff_hz: float, rate_hz: float) -> None:
+    if not (math.isfinite(cutoff_hz) and 0 < cutoff_hz < rate_hz / 2):
+        raise InputError(
+            f"cut-off {cutoff_hz} Hz must be between 0 and the Nyquist frequency "
+            f"{rate_hz / 2:g} Hz (sample rate {rate_hz:g} Hz)",
+            key="cutoff",
+        )
+
+
+def _smooth_at_most(bound: int) -> int:
+    """Largest integer <= bound whose prime factors are all <= 7 (cheap to decimate in stages)."""
+    for m in range(max(bound, 1), 0, -1):
+        r = m
+        for p in (2, 3, 5, 7):
+            while r % p == 0:
+                r //= p
+        if r == 1:
+            return m
+    return 1
+
+
+def decimation_stages(factor: int) -> list[int]:
+    """Split a decimation factor into stages of at most :data:`MAX_STAGE` where possible.
+
+    A prime factor above :data:`MAX_STAGE` becomes its own stage (filtered by a FIR filter, see
+    :func:`parallel_decimate`).
+    """
+    primes: list[int] = []
+    r, p = factor, 2
+    while p * p <= r:
+        while r % p == 0:
+            primes.append(p)
+            r //= p
+        p += 1
+    if r > 1:
+        primes.append(r)
+    stages: list[int] = []
+    for f in sorted(primes, reverse=True):
+        for i, s in enumerate(stages):
+            if s * f <= 10:  # 10, not 13: a margin on the IIR filter's conditioning
+                stages[i] = s * f
+                break
+        else:
+            stages.append(f)
+    return sorted(stages, reverse=True)
+
+
+def _settling_samples(sos: np.ndarray, cutoff_fraction: float) -> int:
+    """Samples until a filter's impulse response stays below :data:`_SETTLED` of its peak."""
+    length = int(60.0 / cutoff_fraction) + 64
+    impulse = np.zeros(length)
+    impulse[0] = 1.0
+    h = np.abs(sps.sosfilt(sos, impulse))
+    above = np.flatnonzero(h > _SETTLED * h.max())
+    return int(above[-1]) + 1 if above.size else 1
+
+
+def _decimation_sos(q: int) -> np.ndarray:
+    # The filter scipy.signal.decimate uses for ftype="iir".
+    return np.asarray(sps.cheby1(DECIMATE_IIR_ORDER, 0.05, 0.8 / q, output="sos"))
+
+
+def _trim_for(rate_hz: float, cutoff_hz: float, order: int, factor: int) -> int:
+    """Decimated samples to drop at each border so that filter transients have died out."""
+    sos = np.asarray(sps.butter(order, cutoff_hz, fs=rate_hz, output="sos"))
+    # Transients of the position filter, in input samples (+2 for the difference stencils).
+    span = float(_settling_samples(sos, 2 * cutoff_hz / rate_hz) + 2)
+    step = 1
+    for q in decimation_stages(factor):
+        if q <= MAX_STAGE:
+            span += _settling_samples(_decimation_sos(q), 0.8 / q) * step
+        else:
+            span += 20 * q * step  # half the length of decimate's FIR filter
+        step *= q
+    return math.ceil(span / factor) + 1
+
+
+def default_filter(
+    rate_hz: float,
+    bandwidth_hz: float | None = None,
+    *,
+    cutoff_hz: float | None = None,
+    decimate: int | None = None,
+    order: int = 4,
+) -> FilterSettings:
+    """Filter settings derived from the sample rate and the trajectory's bandwidth.
+
+    Cut-off: :data:`BANDWIDTH_MULTIPLE` times the trajectory's highest harmonic when it is known,
+    else rate/20; in both cases at most rate/20 and :data:`MAX_DEFAULT_CUTOFF_HZ` (the rigid-body
+    dynamics of an arm lie well below 50 Hz, the rest is noise). Decimation: the largest factor
+    whose anti-aliasing filter (0.8 × the new Nyquist frequency) still passes the cut-off.
+    Trim: from the impulse responses of the filters actually used.
+
+    Parameters
+    ----------
+    rate_hz
+        Sample rate of the data, Hz.
+    bandwidth_hz
+        Highest frequency of the excitation trajectory (its highest harmonic), Hz, if known.
+    cutoff_hz, decimate
+        Overrides (``--cutoff``, ``--decimate``); the trim is derived for them.
+    order
+        Butterworth order.
+
+    Raises
+    ------
+    InputError
+        Rate, bandwidth, cut-off or factor out of range, or a rate too low for the bandwidth.
+    """
+    _check_rate(rate_hz)
+    if bandwidth_hz is not None and not (math.isfinite(bandwidth_hz) and bandwidth_hz > 0):
+        raise InputError(f"must be a positive number of Hz, got {bandwidth_hz}", key="bandwidth")
+    cap = min(rate_hz / 20.0, MAX_DEFAULT_CUTOFF_HZ)
+    if cutoff_hz is None:
+        cutoff_hz = cap if bandwidth_hz is None else min(BANDWIDTH_MULTIPLE * bandwidth_hz, cap)
+        if bandwidth_hz is not None and cutoff_hz < 2 * bandwidth_hz:
+            raise InputError(
+                f"sample rate {rate_hz:g} Hz is too low for a trajectory with harmonics up to "
+                f"{bandwidth_hz:g} Hz (needs at least {40 * bandwidth_hz:g} Hz, or give --cutoff)",
+                key="rate",
+            )
+    _check_cutoff(cutoff_hz, rate_hz)
+    if bandwidth_hz is not None and cutoff_hz <= bandwidth_hz:
+        raise InputError(
+            f"cut-off {cutoff_hz:g} Hz would remove the trajectory's harmonics up to "
+            f"{bandwidth_hz:g} Hz",
+            key="cutoff",
+        )
+    if decimate is None:
+        decimate = _smooth_at_most(int(0.4 * rate_hz / cutoff_hz))
+    elif isinstance(decimate, bool) or not isinstance(decimate, int) or decimate < 1:
+        raise InputError(f"must be an integer >= 1, got {decimate!r}", key="decimate")
+    kept = 0.4 * rate_hz / decimate  # pass band of the decimation filter
+    if bandwidth_hz is not None and decimate > 1 and kept <= bandwidth_hz:
+        raise InputError(
+            f"decimation by {decimate} keeps only up to {kept:g} Hz, below the trajectory's "
+            f"harmonics up to {bandwidth_hz:g} Hz",
+            key="decimate",
+        )
+    if isinstance(order, bool) or not isinstance(order, int) or order < 1:
+        raise InputError(f"must be an integer >= 1, got {order!r}", key="order")
+    trim = _trim_for(rate_hz, cutoff_hz, order, decimate)
+    return FilterSettings(cutoff_hz=float(cutoff_hz), order=order, decimate=decimate, trim=trim)
+
+
+def _where(source: str | Path | None) -> dict[str, str | Path | None]:
+    return {"file": source}
+
+
+def _check_finite(x: np.ndarray, what: str, source: str | Path | None) -> None:
+    finite = np.isfinite(x)
+    if not finite.all():
+        k = int(np.argwhere(~finite)[0][0])
+        raise DataError(f"{what} is not finite (NaN or inf) at sample {k}", **_where(source))
+
+
+def derivatives(
+    q: np.ndarray,
+    rate_hz: float,
+    settings: FilterSettings,
+    *,
+    source: str | Path | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Filtered positions, velocities and accelerations from sampled positions.
+
+    Zero-phase Butterworth low-pass (:func:`scipy.signal.sosfiltfilt`), then central differences
+    ``(q[k+1] - q[k-1]) / 2h`` and ``(q[k+1] - 2 q[k] + q[k-1]) / h²``. The first and last
+    samples use one-sided values; they lie in the border that :func:`parallel_decimate` trims.
+
+    Parameters
+    ----------
+    q
+        Positions, rad, shape (N,) or (N, n).
+    rate_hz
+        Sample rate, Hz.
+    settings
+        Cut-off and order of the low-pass.
+    source
+        File the data came from, named in errors.
+
+    Returns
+    -------
+    tuple of numpy.ndarray
+        ``q_f`` (rad), ``qd`` (rad/s), ``qdd`` (rad/s²), each shaped like ``q``.
+
+    Raises
+    ------
+    DataError
+        NaN/inf in ``q`` or too few samples for the filter.
+    InputError
+        Bad rate or a cut-off at or above the Nyquist frequency.
+    """
+    _check_rate(rate_hz)
+    _check_cutoff(settings.cutoff_hz, rate_hz)
+    x = np.asarray(q, dtype=float)
+    if x.ndim not in (1, 2):
+        raise ValueError(f"positions must have shape (N,) or (N, n), got {x.shape}")
+    sos = np.asarray(sps.butter(settings.order, settings.cutoff_hz, fs=rate_hz, output="sos"))
+    padlen = 3 * (2 * len(sos) + 1)  # sosfiltfilt's default padding
+    if x.shape[0] <= padlen:
+        raise DataError(
+            f"too few samples for the position filter: {x.shape[0]}, the order-{settings.order} "
+            f"Butterworth needs more than {padlen}",
+            **_where(source),
+        )
+    _check_finite(x, "position", source)
+    qf = sps.sosfiltfilt(sos, x, axis=0)
+    h = 1.0 / rate_hz
+    qd = np.empty_like(qf)
+    qd[1:-1] = (qf[2:] - qf[:-2]) / (2 * h)
+    qd[0] = (qf[1] - qf[0]) / h
+    qd[-1] = (qf[-1] - qf[-2]) / h
+    qdd = np.empty_like(qf)
+    qdd[1:-1] = (qf[2:] - 2 * qf[1:-1] + qf[:-2]) / (h * h)
+    qdd[0] = qdd[1]
+    qdd[-1] = qdd[-2]
+    return qf, qd, qdd
+
+
+def _decimate_stage(x: np.ndarray, q: int) -> np.ndarray:
+    if q <= MAX_STAGE:
+        return np.asarray(sps.decimate(x, q, ftype="iir", axis=0, zero_phase=True))
+    return np.asarray(sps.decimate(x, q, ftype="fir", axis=0, zero_phase=True))
+
+
+def decimated_length(n_samples: int, factor: int) -> int:
+    """Samples left after decimating ``n_samples`` by ``factor`` (before trimming)."""
+    n = n_samples
+    for q in decimation_stages(factor):
+        n = -(-n // q)
+    return n
+
+
+def parallel_decimate(
+    arrays: Sequence[np.ndarray],
+    factor: int,
+    trim: int,
+    *,
+    source: str | Path | None = None,
+) -> list[np.ndarray]:
+    """Low-pass, down-sample and trim several arrays with the same filter on every column.
+
+    Decimation is :func:`scipy.signal.decimate` (Chebyshev I, order 8, zero phase), in stages
+    of at most 10 for large factors; a prime factor above 13 gets decimate's FIR filter.
+
+    Parameters
+    ----------
+    arrays
+        Arrays with time along axis 0 and the same number of samples, any trailing shape
+        (torques (N, n), regressors (N, n, p), ...).
+    factor
+        Decimation factor (1: trimming only).
+    trim
+        Samples dropped at each border after decimation.
+    source
+        File the data came from, named in errors.
+
+    Returns
+    -------
+    list of numpy.ndarray
+        The decimated and trimmed arrays, same trailing shapes.
+
+    Raises
+    ------
+    DataError
+        NaN/inf, or too few samples for the decimation filter or for the trim.
+    InputError
+        ``factor`` < 1 or ``trim`` < 0.
+    """
+    if isinstance(factor, bool) or not isinstance(factor, int | np.integer) or factor < 1:
+        raise InputError(f"must be an integer >= 1, got {factor!r}", key="decimate")
+    if isinstance(trim, bool) or not isinstance(trim, int | np.integer) or trim < 0:
+        raise InputError(f"must be an integer >= 0, got {trim!r}", key="trim")
+    xs = [np.asarray(a, dtype=float) for a in arrays]
+    if not xs:
+        return []
+    n_samples = xs[0].shape[0]
+    for i, x in enumerate(xs):
+        if x.ndim == 0 or x.shape[0] != n_samples:
+            raise ValueError(f"array {i} has shape {x.shape}, expected {n_samples} samples first")
+    stages = decimation_stages(int(factor))
+    n = n_samples
+    padlen = 3 * (2 * (DECIMATE_IIR_ORDER // 2) + 1)  # filtfilt padding of decimate's IIR
+    for q in stages:
+        need = padlen if q <= MAX_STAGE else 2 * (20 * q + 1)
+        if n <= need:
+            raise DataError(
+                f"too few samples to decimate by {factor}: {n_samples} samples, the stage by "
+                f"{q} needs more than {need} at its input",
+                **_where(source),
+            )
+        n = -(-n // q)
+    if n <= 2 * trim:
+        raise DataError(
+            f"too few samples: {n_samples} samples decimated by {factor} leave {n}, not more "
+            f"than the {2 * trim} border samples to trim",
+            **_where(source),
+        )
+    out = []
+    for i, x in enumerate(xs):
+        _check_finite(x, f"array {i}", source)
+        flat = x.reshape(n_samples, -1)
+        res = np.empty((n, flat.shape[1]))
+        for c0 in range(0, flat.shape[1], _COLUMN_BLOCK):
+            block = flat[:, c0 : c0 + _COLUMN_BLOCK]
+            for q in stages:
+                block = _decimate_stage(block, q)
+            res[:, c0 : c0 + _COLUMN_BLOCK] = block
+        out.append(res[trim : n - trim].reshape((n - 2 * trim, *x.shape[1:])))
+    return out
