@@ -29,3 +29,50 @@ def tx40_real(shared_dir: Path) -> Path:
     if not (d / "pos_read_data.csv").is_file():
         pytest.skip("../shared/data/tx40-real is missing")
     return d
+
+
+# --- resource leak check (python-can style) ------------------------------------------------------
+# A test that leaves a python-can bus open or a thread running (a CAN notifier, a simulator timer,
+# a writer thread...) fails: the next test would otherwise inherit its traffic or its CPU.
+
+_LEAK_GRACE_S = 2.0
+
+
+def _virtual_bus_counts() -> dict[object, int]:
+    import sys
+
+    virtual = sys.modules.get("can.interfaces.virtual")
+    if virtual is None:
+        return {}
+    with virtual.channels_lock:
+        return {name: len(queues) for name, queues in virtual.channels.items()}
+
+
+@pytest.fixture(autouse=True)
+def _no_leaked_bus_or_thread():
+    import threading
+    import time
+
+    threads_before = set(threading.enumerate())
+    buses_before = _virtual_bus_counts()
+    yield
+    deadline = time.monotonic() + _LEAK_GRACE_S
+    while True:
+        extra = [t for t in threading.enumerate() if t not in threads_before and t.is_alive()]
+        buses = _virtual_bus_counts()
+        grown = {
+            name: n - buses_before.get(name, 0)
+            for name, n in buses.items()
+            if n > buses_before.get(name, 0)
+        }
+        if (not extra and not grown) or time.monotonic() > deadline:
+            break
+        time.sleep(0.01)
+    problems = []
+    if grown:
+        problems.append(f"python-can virtual bus(es) left open: {grown}")
+    if extra:
+        names = ", ".join(f"{t.name} (daemon={t.daemon})" for t in extra)
+        problems.append(f"thread(s) left running: {names}")
+    if problems:
+        pytest.fail("resource leak: " + "; ".join(problems), pytrace=False)

@@ -1,0 +1,215 @@
+"""CAN bus factory (python-can, from the ``[bus]`` table) and bus-load arithmetic.
+
+The only switch between simulation and hardware is this configuration: ``interface = "virtual"``
+for the mocked bus, ``socketcan`` / ``pcan`` / ``kvaser`` / ... for a real one. The virtual bus has
+no arbitration and no rate limit, so it cannot show an overloaded bus: :func:`bus_load` computes
+the load from the frame layout instead.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import can
+import canopen
+
+from drivegain.config._toml import Table
+from drivegain.errors import BusError
+
+#: Bitrates a CAN 2.0 controller is normally configured for (bit/s).
+STANDARD_BITRATES = (10_000, 20_000, 50_000, 100_000, 125_000, 250_000, 500_000, 800_000, 1_000_000)
+
+#: Seconds the bus reader thread blocks in one ``recv``: bounds how long a disconnect waits.
+NOTIFIER_CYCLE_S = 0.05
+
+
+@dataclass(frozen=True)
+class BusConfig:
+    """How to open the CAN bus.
+
+    Attributes
+    ----------
+    interface
+        python-can interface name (``virtual``, ``socketcan``, ``pcan``, ``kvaser``, ...).
+    channel
+        Interface channel (``can0``, ``PCAN_USBBUS1``, a virtual channel name, ...).
+    bitrate
+        Nominal bitrate, bit/s (ignored by the virtual interface, used for the bus load).
+    extra
+        Further keyword arguments for :class:`can.Bus` (the ``[bus.options]`` table).
+    """
+
+    interface: str
+    channel: str
+    bitrate: int = 1_000_000
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+_BUS_KEYS = {"interface", "channel", "bitrate", "options"}
+
+
+def bus_config_from_table(table: Table) -> BusConfig:
+    """Read the ``[bus]`` table of an acquisition TOML.
+
+    Keys: ``interface`` (str, a python-can interface name), ``channel`` (str or int),
+    ``bitrate`` (int, bit/s, default 1 000 000, one of :data:`STANDARD_BITRATES`), optional
+    ``options`` (table of extra :class:`can.Bus` keyword arguments).
+
+    Raises
+    ------
+    ConfigError
+        One line naming the file and key at fault.
+    """
+    table.reject_unknown(_BUS_KEYS)
+    interface = table.get_str("interface")
+    if interface not in can.VALID_INTERFACES:
+        raise table.error(
+            "interface",
+            f"unknown python-can interface {interface!r} (e.g. virtual, socketcan, pcan, kvaser)",
+        )
+    raw_channel = table.raw("channel")
+    if isinstance(raw_channel, bool) or not isinstance(raw_channel, str | int):
+        raise table.error("channel", f"expected a string or an integer, got {raw_channel!r}")
+    channel = str(raw_channel)
+    if not channel:
+        raise table.error("channel", "must not be empty")
+    bitrate = table.get_int("bitrate", default=1_000_000, minimum=1)
+    if bitrate not in STANDARD_BITRATES:
+        allowed = ", ".join(str(b) for b in STANDARD_BITRATES)
+        raise table.error("bitrate", f"must be one of {allowed}, got {bitrate}")
+    extra: dict[str, Any] = {}
+    if table.has("options"):
+        options = table.table("options")
+        reserved = {"interface", "channel", "bitrate"} & set(options.data)
+        if reserved:
+            name = sorted(reserved)[0]
+            raise options.error(name, "set this in [bus] itself, not in [bus.options]")
+        extra = dict(options.data)
+    return BusConfig(interface=interface, channel=channel, bitrate=bitrate, extra=extra)
+
+
+def open_bus(cfg: BusConfig) -> can.BusABC:
+    """Open the python-can bus described by ``cfg``; the caller shuts it down.
+
+    Raises
+    ------
+    BusError
+        The interface or channel cannot be opened.
+    """
+    try:
+        return can.Bus(
+            interface=cfg.interface, channel=cfg.channel, bitrate=cfg.bitrate, **cfg.extra
+        )
+    except (can.CanError, OSError, ImportError, ValueError, TypeError) as exc:
+        raise BusError(f"cannot open CAN {cfg.interface} channel {cfg.channel!r}: {exc}") from None
+
+
+def open_network(cfg: BusConfig) -> canopen.Network:
+    """A connected :class:`canopen.Network` on the bus of ``cfg``; the caller disconnects it.
+
+    The network owns the bus's only :class:`can.Notifier` (python-can allows one per bus): add
+    further listeners with ``network.notifier.add_listener``.
+    """
+    bus = open_bus(cfg)
+    network = canopen.Network(bus)
+    # Instance attribute: the reader thread then notices a disconnect within this time.
+    network.NOTIFIER_CYCLE = NOTIFIER_CYCLE_S
+    try:
+        network.connect()
+    except Exception as exc:
+        bus.shutdown()
+        raise BusError(f"cannot start the CAN reader on {cfg.channel!r}: {exc}") from None
+    return network
+
+
+# --- bus load -----------------------------------------------------------------------------------
+
+#: Bits of a CAN 2.0A data frame outside the data field that bit stuffing can affect:
+#: SOF 1, identifier 11, RTR 1, IDE 1, r0 1, DLC 4, CRC 15.
+_STUFFED_OVERHEAD_STD = 34
+#: The same for a 29-bit identifier (CAN 2.0B): SOF, 11 + SRR + IDE + 18, RTR, r1, r0, DLC, CRC.
+_STUFFED_OVERHEAD_EXT = 54
+#: Bits never stuffed: CRC delimiter 1, ACK slot + delimiter 2, EOF 7, intermission 3.
+_FIXED_TAIL = 13
+
+
+def frame_bits(data_bytes: int, *, extended: bool = False, worst_case: bool = True) -> int:
+    """Bits one CAN data frame occupies on the bus, intermission included.
+
+    Worst-case bit stuffing (one stuff bit per 4 bits after the first of the stuffed region,
+    Davis et al. 2007): an 8-byte standard frame is 111 bits, 135 with stuffing.
+
+    Parameters
+    ----------
+    data_bytes
+        Data length, 0..8.
+    extended
+        29-bit identifier.
+    worst_case
+        Add the worst-case number of stuff bits.
+    """
+    if not 0 <= data_bytes <= 8:
+        raise ValueError(f"a CAN 2.0 frame carries 0..8 data bytes, got {data_bytes}")
+    stuffed = (_STUFFED_OVERHEAD_EXT if extended else _STUFFED_OVERHEAD_STD) + 8 * data_bytes
+    stuff = (stuffed - 1) // 4 if worst_case else 0
+    return stuffed + _FIXED_TAIL + stuff
+
+
+@dataclass(frozen=True)
+class BusLoad:
+    """Bus occupancy of one SYNC cycle.
+
+    Attributes
+    ----------
+    bits_per_cycle
+        Bits of all frames of one cycle (worst-case stuffing).
+    load
+        Fraction of the bitrate used at the given period (1.0 = 100 %).
+    max_rate_hz
+        Highest cycle rate at 100 % load.
+    """
+
+    bits_per_cycle: int
+    load: float
+    max_rate_hz: float
+
+    def rate_at(self, load: float) -> float:
+        """Highest cycle rate (Hz) that keeps the bus at or below ``load`` (fraction)."""
+        return self.max_rate_hz * load
+
+
+def bus_load(
+    n_nodes: int,
+    period_s: float,
+    bitrate: int,
+    rpdo_bytes: Sequence[int] = (8,),
+    tpdo_bytes: Sequence[int] = (8, 8),
+    sync: bool = True,
+    sync_bytes: int = 1,
+) -> BusLoad:
+    """Bus load of a cyclic exchange: per node its RPDOs and TPDOs, plus one SYNC per cycle.
+
+    Parameters
+    ----------
+    n_nodes
+        Number of drives.
+    period_s
+        SYNC period, s.
+    bitrate
+        Bitrate, bit/s.
+    rpdo_bytes, tpdo_bytes
+        Data length of each RPDO / TPDO of one node.
+    sync
+        Count the SYNC frame.
+    sync_bytes
+        SYNC data length (1 with a counter, 0 without).
+    """
+    if n_nodes < 0 or period_s <= 0.0 or bitrate <= 0:
+        raise ValueError("n_nodes >= 0, period_s > 0 and bitrate > 0 are required")
+    per_node = sum(frame_bits(b) for b in (*rpdo_bytes, *tpdo_bytes))
+    bits = n_nodes * per_node + (frame_bits(sync_bytes) if sync else 0)
+    max_rate = bitrate / bits if bits else math.inf
+    return BusLoad(bits_per_cycle=bits, load=bits / (bitrate * period_s), max_rate_hz=max_rate)

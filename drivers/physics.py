@@ -1,0 +1,419 @@
+"""The simulated robot behind the mocked bus: forward dynamics and the drives' control loops.
+
+One instance holds the whole arm (the drives of a coupled wrist share dynamics). Dynamics use the
+true standard parameters ``chi`` (:mod:`drivegain.identify.params`): Pinocchio's CRBA and
+nonlinear effects on bodies built from ``chi``, plus rotor inertia, friction (the wrist form of the
+robot or of the simulation config), torque offsets and the coupled motor's terms, exactly as
+:func:`drivegain.identify.regressor.standard_regressor` models them (a test checks
+``M(q) qdd + h(q, qd) == standard_regressor(q, qd, qdd) @ chi``).
+
+Each drive runs a cascaded controller on its motor at the internal step ``dt``: CSP setpoint
+interpolated linearly over one SYNC period with velocity feed-forward, proportional position loop,
+PI velocity loop on the velocity differentiated from quantised encoder counts, current limit. The
+motor torque is (true gain / gear ratio) × (current reference + current-loop noise); joint torques
+are ``K.T @ motor torques`` (``tau = V(i) g``, eq. 21). A motor whose drive is not powered is held
+by its brake (its motor coordinate is locked; braking is instantaneous).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import IntEnum
+
+import numpy as np
+import pinocchio as pin
+
+from drivegain.config.payload import Payload
+from drivegain.config.robot import Robot, WristFriction
+from drivegain.config.truth import Truth
+from drivegain.identify.model import build_model
+from drivegain.identify.params import (
+    N_PER_JOINT,
+    inertial_slice,
+    to_pinocchio_order,
+    truth_vector,
+    with_payload,
+)
+
+
+class MotorMode(IntEnum):
+    """What drives a motor during a step."""
+
+    BRAKED = 0  # power off, brake holds the motor
+    TRACK = 1  # position loop on the CSP setpoint
+    QUICK_STOP = 2  # position loop on a deceleration ramp to rest
+
+
+@dataclass(frozen=True)
+class LoopGains:
+    """Per-motor controller gains (motor side).
+
+    kp: position loop, 1/s; kv: velocity loop, A per (rad/s); ki: velocity integral, A per rad;
+    i_max: current limit, A.
+    """
+
+    kp: np.ndarray
+    kv: np.ndarray
+    ki: np.ndarray
+    i_max: np.ndarray
+
+
+@dataclass(frozen=True)
+class StepOutput:
+    """What the drives apply during one internal step and the resulting acceleration.
+
+    All (n,) arrays. ``setpoint`` and ``following_error`` are motor side (rad); ``tau`` and
+    ``qdd`` joint side (N·m, rad/s²); currents in A.
+    """
+
+    setpoint: np.ndarray
+    following_error: np.ndarray
+    current_reference: np.ndarray
+    current: np.ndarray
+    tau: np.ndarray
+    qdd: np.ndarray
+
+
+def truth_parameters(robot: Robot, truth: Truth, payload: Payload | None = None) -> np.ndarray:
+    """The standard parameter vector of the simulated robot (payload on its link if given)."""
+    chi = truth_vector(robot, truth)
+    if payload is not None:
+        chi = with_payload(robot, chi, payload)
+    return chi
+
+
+class Dynamics:
+    """Inverse/forward dynamics of the true robot from its standard parameters.
+
+    Parameters
+    ----------
+    robot
+        The robot description (kinematics, couplings).
+    chi
+        Standard parameters (see :mod:`drivegain.identify.params`).
+    friction
+        Friction form of the coupled motors; default the robot file's.
+    """
+
+    def __init__(self, robot: Robot, chi: np.ndarray, friction: WristFriction | str | None = None):
+        self.robot = robot
+        self.n = n = robot.n
+        self.form = WristFriction(friction or robot.wrist_friction)
+        self.model = build_model(robot).pin_model.copy()
+        for j in range(n):
+            self.model.inertias[j + 1] = pin.Inertia.FromDynamicParameters(
+                to_pinocchio_order(chi[inertial_slice(j)])
+            )
+        self.data = self.model.createData()
+        probe = pin.crba(self.model, self.data, np.linspace(0.3, 1.3, n))
+        # Some Pinocchio versions fill only the upper triangle.
+        self._symmetrize = not np.allclose(np.tril(probe, -1), np.triu(probe, 1).T)
+        per_joint = chi[: N_PER_JOINT * n].reshape(n, N_PER_JOINT)
+        self.ia, self.fv, self.fc, self.offset = (per_joint[:, k].copy() for k in (10, 11, 12, 13))
+        self.rotor = np.diag(self.ia)
+        self.couplings: list[tuple[int, int, float, float]] = []
+        for k, c in enumerate(robot.couplings):
+            ia_m = self.ia[c.motor]
+            self.rotor[c.joint, c.motor] += ia_m
+            self.rotor[c.motor, c.joint] += ia_m
+            fvm, fcm = chi[N_PER_JOINT * n + 2 * k : N_PER_JOINT * n + 2 * k + 2]
+            self.couplings.append((c.motor, c.joint, float(fvm), float(fcm)))
+
+    def mass_matrix(self, q: np.ndarray) -> np.ndarray:
+        """Joint-space inertia matrix incl. rotor inertia (n, n), kg·m²."""
+        m = pin.crba(self.model, self.data, q)
+        if self._symmetrize:
+            m = np.triu(m) + np.triu(m, 1).T
+        return m + self.rotor
+
+    def bias(self, q: np.ndarray, qd: np.ndarray) -> np.ndarray:
+        """Coriolis, centrifugal, gravity, friction and offset torques (n,), N·m."""
+        h = pin.nle(self.model, self.data, q, qd) + self.fv * qd + self.fc * np.sign(qd)
+        h = h + self.offset
+        for m, o, fvm, fcm in self.couplings:
+            s_sum = np.sign(qd[o] + qd[m])
+            h[o] += fvm * qd[m]
+            h[m] += fvm * qd[o]
+            if self.form is WristFriction.PHYSICAL:
+                h[o] += fcm * s_sum
+                h[m] += fcm * s_sum
+            else:  # eq. (22) as printed
+                s_m = np.sign(qd[m])
+                h[o] += fcm * s_m
+                h[m] += fcm * (s_sum - s_m)
+        return h
+
+    def inverse(self, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray) -> np.ndarray:
+        """Joint torques (n,) that produce ``qdd`` at (q, qd)."""
+        return self.mass_matrix(q) @ qdd + self.bias(q, qd)
+
+
+def design_gains(
+    robot: Robot,
+    dyn: Dynamics,
+    gains: np.ndarray,
+    q0: np.ndarray,
+    *,
+    bandwidth_hz: float = 60.0,
+    current_limit: float = 3.0,
+) -> LoopGains:
+    """Controller gains of every drive, tuned on the inertia each motor sees at pose ``q0``.
+
+    The velocity loop has crossover ``bandwidth_hz`` (kv = ω·J_m/Kt with the motor-side inertia
+    J_m and torque constant Kt = gain / gear ratio), the integral corner at ω/6 and the position
+    loop at ω/4 (a well-damped cascade). ``current_limit`` is in multiples of the rated current.
+    """
+    k = robot.transmission()
+    kinv = np.linalg.inv(k)
+    m_motor = kinv.T @ dyn.mass_matrix(np.asarray(q0, float)) @ kinv
+    kt = np.asarray(gains, float) / robot.gear_ratios
+    omega = 2.0 * np.pi * bandwidth_hz
+    kv = omega * np.diag(m_motor) / kt
+    rated = np.array([j.rated_current for j in robot.joints])
+    return LoopGains(
+        kp=np.full(robot.n, omega / 4.0),
+        kv=kv,
+        ki=kv * omega / 6.0,
+        i_max=current_limit * rated,
+    )
+
+
+class RobotPhysics:
+    """State and time integration of the simulated arm with its drives.
+
+    Parameters
+    ----------
+    robot
+        Robot description.
+    dynamics
+        The true dynamics.
+    gains
+        True drive gains (N·m/A, joint side).
+    loop
+        Controller gains.
+    dt
+        Internal integration step, s.
+    q0
+        Initial joint positions, rad.
+    noise_nm
+        Standard deviation of the current-loop error of each drive, expressed as joint torque
+        of that drive (N·m).
+    rng
+        Random generator for the noise.
+    """
+
+    def __init__(
+        self,
+        robot: Robot,
+        dynamics: Dynamics,
+        gains: np.ndarray,
+        loop: LoopGains,
+        dt: float,
+        q0: np.ndarray,
+        noise_nm: float,
+        rng: np.random.Generator,
+    ):
+        self.robot = robot
+        self.dyn = dynamics
+        self.n = robot.n
+        self.dt = dt
+        self.k = robot.transmission()
+        self.kinv = np.linalg.inv(self.k)
+        self.gains = np.asarray(gains, float)
+        self.ratios = robot.gear_ratios
+        self.kt = self.gains / self.ratios
+        self.loop = loop
+        self.cpr = np.array([j.encoder_counts for j in robot.joints], dtype=float) / (2 * np.pi)
+        self.noise_std = noise_nm / np.abs(self.gains)
+        self.rng = rng
+        self.q = np.array(q0, dtype=float)
+        self.qd = np.zeros(self.n)
+        self.step_index = 0
+        self.modes = np.zeros(self.n, dtype=int)
+        # Setpoint generator (motor side): linear interpolation from `_from` to `_to` over
+        # `_span` seconds starting at `_t_latch`; quick stop: ramp velocity `_qs_v` to 0.
+        xm = self.motor_positions()
+        self._from = xm.copy()
+        self._to = xm.copy()
+        self._t_latch = np.zeros(self.n)
+        self._span = np.full(self.n, 1.0)
+        self._qs_v = np.zeros(self.n)
+        self._qs_pos = xm.copy()
+        self._qs_decel = np.full(self.n, np.inf)
+        self._integral = np.zeros(self.n)
+        self._prev_meas = self._measured()
+        self._pending: StepOutput | None = None
+        self._pending_loop: tuple[np.ndarray, np.ndarray] = (np.zeros(self.n), self._prev_meas)
+        self._update_masks()
+
+    # --- observation ------------------------------------------------------------------------
+    @property
+    def time_s(self) -> float:
+        return self.step_index * self.dt
+
+    def motor_positions(self) -> np.ndarray:
+        """Motor angles K q, rad."""
+        return self.k @ self.q
+
+    def motor_velocities(self) -> np.ndarray:
+        return self.k @ self.qd
+
+    def encoder_counts(self) -> np.ndarray:
+        """Encoder readings (counts, int64) of every motor."""
+        return np.rint(self.motor_positions() * self.cpr).astype(np.int64)
+
+    def _measured(self) -> np.ndarray:
+        return np.rint(self.motor_positions() * self.cpr) / self.cpr
+
+    @property
+    def any_powered(self) -> bool:
+        """Some motor is driven (otherwise integration is trivial)."""
+        return self._any_powered
+
+    def quick_stop_done(self) -> np.ndarray:
+        """Motors in QUICK_STOP whose ramp has reached rest."""
+        return self._qs & (self._qs_v == 0.0)
+
+    # --- commands ---------------------------------------------------------------------------
+    def set_mode(self, motor: int, mode: MotorMode) -> None:
+        """Change what drives ``motor``; entering TRACK starts from the measured position."""
+        old = self.modes[motor]
+        if old == mode:
+            return
+        meas = self._measured()[motor]
+        if mode == MotorMode.TRACK:
+            self._from[motor] = self._to[motor] = meas
+            self._integral[motor] = 0.0
+            if old == MotorMode.BRAKED:
+                self._prev_meas[motor] = meas
+        elif mode == MotorMode.QUICK_STOP:
+            self._qs_v[motor] = self.motor_velocities()[motor]
+            self._qs_pos[motor] = self._setpoint_at(self.time_s)[0][motor]
+        else:
+            self._integral[motor] = 0.0
+            # The brake stops the motor at once.
+            xd = self.k @ self.qd
+            xd[motor] = 0.0
+            self.qd = self.kinv @ xd
+        self.modes[motor] = int(mode)
+        self._update_masks()
+
+    def _update_masks(self) -> None:
+        # Plain arrays and bools: enum comparisons are slow in the integration loop.
+        self._powered = self.modes != int(MotorMode.BRAKED)
+        self._braked = ~self._powered
+        self._qs = self.modes == int(MotorMode.QUICK_STOP)
+        self._any_powered = bool(self._powered.any())
+        self._all_powered = bool(self._powered.all())
+        self._any_qs = bool(self._qs.any())
+        self._pending = None
+
+    def set_quick_stop_deceleration(self, decel: np.ndarray) -> None:
+        """Quick stop ramp of every motor, rad/s² (motor side)."""
+        self._qs_decel = np.asarray(decel, float).copy()
+
+    def latch_targets(self, targets: np.ndarray, mask: np.ndarray, period_s: float) -> None:
+        """New CSP targets (motor rad) for the motors in ``mask``: the setpoint moves linearly
+        from where it is now to the target over ``period_s``."""
+        if not np.any(mask):
+            return
+        now = self.time_s
+        current, _ = self._setpoint_at(now)
+        self._from = np.where(mask, current, self._from)
+        self._to = np.where(mask, targets, self._to)
+        self._t_latch = np.where(mask, now, self._t_latch)
+        self._span = np.where(mask, period_s, self._span)
+        self._pending = None
+
+    # --- evaluation and integration ---------------------------------------------------------
+    def _setpoint_at(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        frac = np.clip((t - self._t_latch) / self._span, 0.0, 1.0)
+        pos = self._from + (self._to - self._from) * frac
+        vel = np.where(frac < 1.0, (self._to - self._from) / self._span, 0.0)
+        return pos, vel
+
+    def evaluate(self) -> StepOutput:
+        """Controller outputs and acceleration for the step starting now (cached until the
+        state or a command changes)."""
+        if self._pending is not None:
+            return self._pending
+        n = self.n
+        sp, v_ff = self._setpoint_at(self.time_s)
+        if self._any_qs:
+            sp = np.where(self._qs, self._qs_pos, sp)
+            v_ff = np.where(self._qs, self._qs_v, v_ff)
+        meas = self._measured()
+        vel = (meas - self._prev_meas) / self.dt
+        powered = self._powered
+        err = sp - meas
+        ev = self.loop.kp * err + v_ff - vel
+        i_ref = self.loop.kv * ev + self._integral
+        i_ref = np.where(powered, np.clip(i_ref, -self.loop.i_max, self.loop.i_max), 0.0)
+        noise = self.rng.standard_normal(n) * self.noise_std
+        i_act = np.where(powered, i_ref + noise, 0.0)
+        tau = self.k.T @ (self.kt * i_act)
+        if self._any_powered:
+            qdd = self._forward(tau)
+        else:
+            qdd = np.zeros(n)
+        out = StepOutput(
+            setpoint=sp,
+            following_error=np.where(powered, err, 0.0),
+            current_reference=i_ref,
+            current=i_act,
+            tau=tau,
+            qdd=qdd,
+        )
+        self._pending = out
+        self._pending_loop = (ev, meas)
+        return out
+
+    def _forward(self, tau: np.ndarray) -> np.ndarray:
+        m = self.dyn.mass_matrix(self.q)
+        f = tau - self.dyn.bias(self.q, self.qd)
+        if self._all_powered:
+            return np.linalg.solve(m, f)
+        # Locked motor coordinates: solve in x = K q on the free ones only.
+        free = self._powered
+        m_motor = self.kinv.T @ m @ self.kinv
+        f_motor = self.kinv.T @ f
+        xdd = np.zeros(self.n)
+        xdd[free] = np.linalg.solve(m_motor[np.ix_(free, free)], f_motor[free])
+        return self.kinv @ xdd
+
+    def advance(self, steps: int) -> None:
+        """Integrate ``steps`` internal steps (semi-implicit Euler)."""
+        remaining = max(0, steps)
+        while remaining > 0:
+            powered = self._powered
+            if not self._any_powered:
+                # Everything braked: nothing moves, skip the remaining steps at once.
+                self.qd[:] = 0.0
+                self.step_index += remaining
+                self._prev_meas = self._measured()
+                self._pending = None
+                return
+            out = self.evaluate()
+            ev, meas = self._pending_loop
+            # Conditional integration: the integral holds while the current saturates.
+            saturated = np.abs(out.current_reference) >= self.loop.i_max
+            grown = self._integral + self.loop.ki * ev * self.dt
+            self._integral = np.where(powered, np.where(saturated, self._integral, grown), 0.0)
+            self._prev_meas = meas
+            self.qd = self.qd + out.qdd * self.dt
+            if not self._all_powered:
+                xd = self.k @ self.qd
+                xd[self._braked] = 0.0
+                self.qd = self.kinv @ xd
+            self.q = self.q + self.qd * self.dt
+            if self._any_qs:
+                qs = self._qs
+                v = self._qs_v
+                new_v = v - np.sign(v) * np.minimum(np.abs(v), self._qs_decel * self.dt)
+                self._qs_pos = np.where(
+                    qs, self._qs_pos + 0.5 * (v + new_v) * self.dt, self._qs_pos
+                )
+                self._qs_v = np.where(qs, new_v, self._qs_v)
+            self.step_index += 1
+            self._pending = None
+            remaining -= 1

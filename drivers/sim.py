@@ -1,0 +1,678 @@
+"""The simulated robot cell: one simulated CiA 402 drive per joint on a (virtual) CAN channel,
+all behind one shared physics simulation.
+
+The cell opens its own bus and :class:`canopen.Network` on the configured channel (python-can's
+virtual bus delivers frames between buses of the same channel, never to their sender), so the
+master side is exactly the code that runs on hardware. Time:
+
+- ``lockstep``: every SYNC advances the physics by exactly one period (deterministic, as fast as
+  the machine allows);
+- ``realtime``: every SYNC advances the physics to the wall-clock time since :meth:`start`.
+
+At each SYNC the cell integrates up to the SYNC instant, triggers due faults, lets each drive apply
+the RPDO data received before the SYNC (controlword, CSP target), evaluates the drives' control
+loops at that instant, records the truth (:meth:`joint_torque_history`) and sends the TPDOs: the
+reported position, current reference and current are those of the SYNC instant.
+"""
+
+from __future__ import annotations
+
+import functools
+import heapq
+import itertools
+import logging
+import math
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import can
+import canopen
+import numpy as np
+from canopen.objectdictionary import import_od
+
+from drivegain.config import load_payload, load_truth, resource_path
+from drivegain.config._toml import Table
+from drivegain.config.robot import Robot, WristFriction
+from drivegain.drivers import objects as ob
+from drivegain.drivers.bus import BusConfig, open_network
+from drivegain.drivers.faults import FaultKind, FaultSpec, fault_from_table
+from drivegain.drivers.physics import (
+    Dynamics,
+    RobotPhysics,
+    design_gains,
+    truth_parameters,
+)
+from drivegain.drivers.simdrive import NmtState, SimDrive
+from drivegain.errors import ConfigError, DriveError
+
+logger = logging.getLogger(__name__)
+
+CLOCKS = ("lockstep", "realtime")
+#: Following error window of the simulated drives, joint side (rad), and its time-out (ms).
+FOLLOWING_ERROR_WINDOW_RAD = 0.1
+FOLLOWING_ERROR_TIMEOUT_MS = 20
+#: Quick stop deceleration, in multiples of the joint's acceleration limit.
+QUICK_STOP_FACTOR = 4.0
+#: Objects the simulated drive reads or writes besides its commissioned ones.
+SIM_REQUIRED_OBJECTS = frozenset(
+    {
+        ob.DEVICE_TYPE,
+        ob.PRODUCER_HEARTBEAT,
+        ob.CONTROLWORD,
+        ob.STATUSWORD,
+        ob.MODES_OF_OPERATION,
+        ob.MODES_DISPLAY,
+        ob.POSITION_ACTUAL,
+        ob.TARGET_POSITION,
+    }
+)
+#: Realtime clock: the integrator thread wakes up about this often (s).
+INTEGRATOR_WAKE_S = 0.001
+#: Largest velocity-loop crossover times internal step (rad) that stays well damped.
+MAX_LOOP_PHASE = 0.4
+#: socketcan error class bit for bus-off, as python-can reports it in ``arbitration_id``.
+CAN_ERR_BUSOFF = 0x40
+
+
+def _default_truth() -> Path:
+    return resource_path("sim/tx40-truth.toml")
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """The ``[simulation]`` table.
+
+    Attributes
+    ----------
+    clock
+        ``lockstep`` or ``realtime``.
+    truth
+        Simulation truth file (true parameters and gains).
+    payload
+        Payload mounted on the simulated robot, if any.
+    seed
+        Seed of the current noise.
+    current_noise_nm
+        Standard deviation of each drive's current-loop error, as joint torque of that drive
+        (N·m); the simulated torque is ``V(i_ref + noise) g``.
+    faults
+        Injected faults.
+    friction
+        Friction form of the coupled wrist (``physical`` / ``paper``); ``None``: the robot's.
+    initial_position
+        Joint positions at power-on (rad); ``None``: all zero.
+    max_step_s
+        Largest internal integration step; the step is the period divided by an integer >= 2.
+    bandwidth_hz
+        Velocity-loop bandwidth of the simulated drives.
+    history_s
+        Simulated seconds of truth kept for :meth:`SimulatedCell.joint_torque_history`.
+    """
+
+    clock: str = "lockstep"
+    truth: Path = field(default_factory=_default_truth)
+    payload: Path | None = None
+    seed: int = 0
+    current_noise_nm: float = 0.5
+    faults: tuple[FaultSpec, ...] = ()
+    friction: str | None = None
+    initial_position: tuple[float, ...] | None = None
+    max_step_s: float = 0.0005
+    bandwidth_hz: float = 60.0
+    history_s: float = 120.0
+
+    def __post_init__(self) -> None:
+        if self.clock not in CLOCKS:
+            raise ConfigError(f"simulation clock must be one of {CLOCKS}, got {self.clock!r}")
+        if self.friction is not None and self.friction not in ("physical", "paper"):
+            raise ConfigError(f"friction must be physical or paper, got {self.friction!r}")
+
+
+_SIM_KEYS = {
+    "clock",
+    "truth",
+    "payload",
+    "seed",
+    "current_noise_nm",
+    "friction",
+    "initial_position",
+    "max_step_s",
+    "bandwidth_hz",
+    "history_s",
+    "fault",
+}
+
+
+def _resolve(t: Table, key: str, base_dir: Path) -> Path:
+    name = t.get_str(key)
+    p = Path(name)
+    if not p.is_absolute():
+        p = base_dir / p
+    if p.is_file():
+        return p
+    try:  # a file shipped with drivegain, e.g. "payloads/calibrated-4590g.toml"
+        return resource_path(name)
+    except FileNotFoundError:
+        raise t.error(key, f"file not found: {p}") from None
+
+
+def sim_config_from_table(table: Table, base_dir: Path) -> SimConfig:
+    """Read the ``[simulation]`` table of an acquisition TOML.
+
+    Keys: ``clock`` ("lockstep" | "realtime", default lockstep), ``truth`` (path, default the
+    shipped ``sim/tx40-truth.toml``), ``payload`` (path, optional), ``seed`` (int >= 0, default 0),
+    ``current_noise_nm`` (float >= 0, default 0.5), ``friction`` ("physical" | "paper", optional),
+    ``initial_position`` (floats, rad, optional), ``max_step_s`` (default 0.0005),
+    ``bandwidth_hz`` (default 60), ``history_s`` (default 120), and ``[[simulation.fault]]``
+    tables (see :func:`drivegain.drivers.faults.fault_from_table`). Relative paths are relative
+    to ``base_dir``, then to the files shipped with drivegain.
+
+    Raises
+    ------
+    ConfigError
+        One line naming the file and key at fault.
+    """
+    table.reject_unknown(_SIM_KEYS)
+    noise = table.get_float("current_noise_nm", default=0.5)
+    if noise < 0.0:
+        raise table.error("current_noise_nm", f"must be >= 0, got {noise}")
+    seed = table.get_int("seed", default=0, minimum=0)
+    initial = None
+    if table.has("initial_position"):
+        initial = tuple(float(v) for v in table.get_floats("initial_position"))
+    return SimConfig(
+        clock=table.get_str("clock", default="lockstep", choices=CLOCKS),
+        truth=_resolve(table, "truth", base_dir) if table.has("truth") else _default_truth(),
+        payload=_resolve(table, "payload", base_dir) if table.has("payload") else None,
+        seed=seed,
+        current_noise_nm=noise,
+        faults=tuple(fault_from_table(t) for t in table.tables("fault", required=False)),
+        friction=(
+            table.get_str("friction", choices=("physical", "paper"))
+            if table.has("friction")
+            else None
+        ),
+        initial_position=initial,
+        max_step_s=table.get_float("max_step_s", default=0.0005, positive=True),
+        bandwidth_hz=table.get_float("bandwidth_hz", default=60.0, positive=True),
+        history_s=table.get_float("history_s", default=120.0, positive=True),
+    )
+
+
+@dataclass(frozen=True)
+class SimHistory:
+    """The simulated truth at every SYNC (N samples; (N, n) arrays, joint side).
+
+    ``tau`` are the joint torques the motors applied (N·m), ``current_reference`` and
+    ``current`` the drives' currents (A, before the per-mille quantisation of the TPDOs),
+    ``setpoint`` the drives' interpolated setpoints mapped to the joints (rad).
+    """
+
+    sync_index: np.ndarray
+    counter: np.ndarray
+    time_s: np.ndarray
+    q: np.ndarray
+    qd: np.ndarray
+    qdd: np.ndarray
+    tau: np.ndarray
+    current_reference: np.ndarray
+    current: np.ndarray
+    setpoint: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.sync_index)
+
+
+@dataclass(frozen=True)
+class FaultRecord:
+    """When an injected fault took effect (simulated time and ``time.monotonic()``)."""
+
+    spec: FaultSpec
+    sim_time_s: float
+    monotonic_s: float
+
+
+class _Timer:
+    """One thread running scheduled actions (heartbeats, late TPDOs) at monotonic times."""
+
+    def __init__(self, guard: Callable[..., None]):
+        self._guard = guard
+        self._heap: list[tuple[float, int, Callable[[], None]]] = []
+        self._cond = threading.Condition()
+        self._seq = itertools.count()
+        self._stopped = False
+        self._thread = threading.Thread(target=self._run, name="drivegain-sim-timer", daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def call_at(self, due: float, fn: Callable[[], None]) -> None:
+        with self._cond:
+            heapq.heappush(self._heap, (due, next(self._seq), fn))
+            self._cond.notify()
+
+    def stop(self) -> None:
+        with self._cond:
+            self._stopped = True
+            self._cond.notify()
+        if self._thread.is_alive():
+            self._thread.join(2.0)
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                while not self._stopped:
+                    now = time.monotonic()
+                    if self._heap and self._heap[0][0] <= now:
+                        break
+                    self._cond.wait(self._heap[0][0] - now if self._heap else None)
+                if self._stopped:
+                    return
+                _, _, fn = heapq.heappop(self._heap)
+            self._guard(fn)
+
+
+class _Integrator:
+    """Realtime clock: integrates the physics step by step as wall time passes, like a drive's
+    own control loop, so that a SYNC only has the last step to compute. Sleeping between steps
+    hands the GIL to the bus threads at once."""
+
+    def __init__(self, cell: SimulatedCell):
+        self._cell = cell
+        self._stopped = threading.Event()
+        self._thread = threading.Thread(
+            target=self._run, name="drivegain-sim-integrator", daemon=True
+        )
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stopped.set()
+        if self._thread.is_alive():
+            self._thread.join(2.0)
+
+    def _run(self) -> None:
+        cell = self._cell
+        dt = cell.dt
+        # Wake-ups cost CPU: integrate about a millisecond at a time.
+        batch = max(1, round(INTEGRATOR_WAKE_S / dt))
+        while not self._stopped.is_set():
+            cell.guard(cell.catch_up)
+            # Nothing powered: integration is free, wake up rarely.
+            idle = not cell.physics.any_powered
+            due = cell._t0 + (cell.physics.step_index + batch) * dt
+            pause = 0.005 if idle else due - time.monotonic()
+            if pause > 0:
+                self._stopped.wait(pause)
+
+
+class SimulatedCell:
+    """Simulated drives (canopen LocalNodes) and robot physics on a CAN channel.
+
+    Parameters
+    ----------
+    robot
+        The robot (joints, node ids, encoders, couplings).
+    bus_cfg
+        The bus to attach to (normally ``interface = "virtual"``).
+    sim
+        Simulation settings.
+    period_s
+        SYNC period the master will use, s (sets the internal step and the CSP interpolation).
+    eds
+        EDS of the simulated drives; default the shipped ``cia402-servo.eds``.
+    """
+
+    def __init__(
+        self,
+        robot: Robot,
+        bus_cfg: BusConfig,
+        sim: SimConfig,
+        period_s: float,
+        *,
+        eds: Path | None = None,
+    ):
+        if period_s <= 0.0:
+            raise ConfigError(f"the SYNC period must be > 0 s, got {period_s}")
+        self.robot = robot
+        self.bus_cfg = bus_cfg
+        self.sim = sim
+        self.period_s = period_s
+        self.eds = eds or ob.default_eds()
+        self.truth = load_truth(sim.truth, n_links=robot.n)
+        self.payload = load_payload(sim.payload, n_links=robot.n) if sim.payload else None
+        node_ids = set(robot.node_ids)
+        for spec in sim.faults:
+            if spec.node is not None and spec.node not in node_ids:
+                raise ConfigError(f"fault {spec.kind}: no joint has node id {spec.node}")
+        q0 = np.zeros(robot.n) if sim.initial_position is None else np.array(sim.initial_position)
+        if q0.shape != (robot.n,):
+            raise ConfigError(f"initial_position needs {robot.n} values, got {q0.size}")
+        if np.any(q0 < robot.lower) or np.any(q0 > robot.upper):
+            raise ConfigError("initial_position is outside the joint limits")
+        self.substeps = max(2, math.ceil(period_s / sim.max_step_s - 1e-9))
+        self.dt = period_s / self.substeps
+        if 2.0 * math.pi * sim.bandwidth_hz * self.dt > MAX_LOOP_PHASE:
+            raise ConfigError(
+                f"velocity loop bandwidth {sim.bandwidth_hz} Hz is too high for the internal "
+                f"step of {self.dt * 1e3:.3f} ms: lower bandwidth_hz or max_step_s"
+            )
+        chi = truth_parameters(robot, self.truth, self.payload)
+        friction = WristFriction(sim.friction) if sim.friction else None
+        self.dynamics = Dynamics(robot, chi, friction)
+        loop = design_gains(
+            robot, self.dynamics, self.truth.gains, q0, bandwidth_hz=sim.bandwidth_hz
+        )
+        self.physics = RobotPhysics(
+            robot,
+            self.dynamics,
+            self.truth.gains,
+            loop,
+            self.dt,
+            q0,
+            sim.current_noise_nm,
+            np.random.default_rng(sim.seed),
+        )
+        ratios = np.abs(robot.gear_ratios)
+        self.physics.set_quick_stop_deceleration(
+            QUICK_STOP_FACTOR * robot.acceleration_limits * ratios
+        )
+        self._cpr = np.array([j.encoder_counts for j in robot.joints]) / (2.0 * math.pi)
+        self.drives: dict[int, SimDrive] = {}
+        for j, joint in enumerate(robot.joints):
+            od = import_od(str(self.eds), joint.node_id)
+            kt = abs(self.truth.gains[j] / joint.gear_ratio)
+            window = FOLLOWING_ERROR_WINDOW_RAD * ratios[j] * self._cpr[j]
+            decel = QUICK_STOP_FACTOR * joint.acceleration_limit * ratios[j] * self._cpr[j]
+            commissioning = {
+                (ob.RATED_CURRENT, 0): round(joint.rated_current * 1000),
+                (ob.RATED_TORQUE, 0): round(kt * joint.rated_current * 1000),
+                (ob.ENCODER_RESOLUTION, 1): joint.encoder_counts,
+                (ob.ENCODER_RESOLUTION, 2): 1,
+                (ob.FOLLOWING_ERROR_WINDOW, 0): round(window),
+                (ob.FOLLOWING_ERROR_TIMEOUT, 0): FOLLOWING_ERROR_TIMEOUT_MS,
+                (ob.QUICK_STOP_DECELERATION, 0): min(round(decel), 0x7FFFFFFF),
+            }
+            missing = [
+                f"0x{index:04X}"
+                for index in sorted({i for i, _ in commissioning} | SIM_REQUIRED_OBJECTS)
+                if index not in od
+            ]
+            if missing:
+                raise ConfigError(
+                    f"the EDS lacks objects the simulated drive needs: {', '.join(missing)}",
+                    file=self.eds,
+                )
+            drive = SimDrive(self, j, joint.node_id, od, commissioning)
+            if any(s.kind == FaultKind.NEVER_BOOTS and s.node == joint.node_id for s in sim.faults):
+                drive.never_boots = True
+            self.drives[joint.node_id] = drive
+        self._network: canopen.Network | None = None
+        self._timer: _Timer | None = None
+        self._t0 = 0.0
+        self._sync_index = 0
+        self._t_first: float | None = None
+        self._pending_faults = [s for s in sim.faults if s.kind != FaultKind.NEVER_BOOTS]
+        self._fault_log: list[FaultRecord] = []
+        self._errors: deque[str] = deque(maxlen=100)
+        self._history: deque[tuple[Any, ...]] = deque(
+            maxlen=max(1, round(sim.history_s / period_s))
+        )
+        self._lock = threading.Lock()  # history and fault log, read from other threads
+        # Physics and drive state: bus callbacks, timer actions and the realtime integrator.
+        self._physics_lock = threading.RLock()
+        self._integrator: _Integrator | None = None
+        self._publish_samples()
+
+    # --- lifecycle -------------------------------------------------------------------------------
+    def start(self) -> None:
+        """Attach to the bus and power the drives on (boot-up messages)."""
+        if self._network is not None:
+            raise DriveError("the simulated cell is already started")
+        self._network = open_network(self.bus_cfg)
+        try:
+            for drive in self.drives.values():
+                self._network.add_node(drive.node)
+            self._network.subscribe(0x80, self._on_sync)
+            self._timer = _Timer(self.guard)
+            self._timer.start()
+            self._t0 = time.monotonic()
+            if self.sim.clock == "realtime":
+                self._integrator = _Integrator(self)
+                self._integrator.start()
+            for drive in self.drives.values():
+                drive.boot()
+            for spec in self.sim.faults:
+                if spec.kind == FaultKind.NEVER_BOOTS:
+                    self._fault_log.append(FaultRecord(spec, 0.0, time.monotonic()))
+        except BaseException:
+            self.stop()
+            raise
+
+    def stop(self) -> None:
+        """Detach from the bus and stop the timer and integrator threads (never raises)."""
+        if self._integrator is not None:
+            self._integrator.stop()
+            self._integrator = None
+        if self._timer is not None:
+            self._timer.stop()
+            self._timer = None
+        if self._network is not None:
+            try:
+                self._network.disconnect()
+            except Exception as exc:
+                logger.warning("simulated cell: disconnect failed: %s", exc)
+            self._network = None
+
+    def __enter__(self) -> SimulatedCell:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    # --- results --------------------------------------------------------------------------------
+    @property
+    def errors(self) -> list[str]:
+        """Exceptions raised inside the simulator's bus callbacks (empty when all is well)."""
+        return list(self._errors)
+
+    def fault_log(self) -> list[FaultRecord]:
+        """Injected faults that took effect, in order."""
+        with self._lock:
+            return list(self._fault_log)
+
+    def joint_torque_history(self) -> SimHistory:
+        """The simulated truth at every SYNC so far (the last ``history_s`` seconds)."""
+        with self._lock:
+            rows = list(self._history)
+        n = self.robot.n
+        if not rows:
+            empty = np.zeros((0, n))
+            return SimHistory(
+                np.zeros(0, int), np.zeros(0, int), np.zeros(0), *(empty.copy() for _ in range(7))
+            )
+        cols = list(zip(*rows, strict=True))
+        return SimHistory(
+            sync_index=np.array(cols[0], dtype=int),
+            counter=np.array(cols[1], dtype=int),
+            time_s=np.array(cols[2], dtype=float),
+            q=np.array(cols[3]),
+            qd=np.array(cols[4]),
+            qdd=np.array(cols[5]),
+            tau=np.array(cols[6]),
+            current_reference=np.array(cols[7]),
+            current=np.array(cols[8]),
+            setpoint=np.array(cols[9]),
+        )
+
+    # --- services used by the drives --------------------------------------------------------------
+    def guard(self, fn: Callable[..., None], *args: Any) -> None:
+        """Run a callback; record instead of propagating its exception (python-can's notifier
+        and canopen's dispatcher would otherwise drop the other callbacks of the frame)."""
+        try:
+            with self._physics_lock:
+                fn(*args)
+        except Exception as exc:
+            name = getattr(fn, "__qualname__", repr(fn))
+            self._errors.append(f"{name}: {exc!r}")
+            logger.exception("simulated cell: %s failed", name)
+
+    def set_heartbeat(self, drive: SimDrive, period_s: float) -> None:
+        """(Re)start the heartbeat producer of ``drive`` (0 stops it)."""
+        drive.heartbeat_generation += 1
+        drive.heartbeat_period_s = period_s
+        if period_s > 0.0 and self._timer is not None:
+            generation = drive.heartbeat_generation
+            due = time.monotonic() + period_s
+            self._timer.call_at(due, lambda: self._heartbeat(drive, generation, due))
+
+    def _heartbeat(self, drive: SimDrive, generation: int, due: float) -> None:
+        if generation != drive.heartbeat_generation or self._timer is None:
+            return
+        network = self._network
+        if network is None:
+            return
+        if not drive.heartbeat_stopped and drive.nmt != NmtState.INITIALISING:
+            network.send_message(0x700 + drive.node_id, bytes([int(drive.nmt)]))
+        period = drive.heartbeat_period_s
+        nxt = due + period
+        now = time.monotonic()
+        if nxt < now:
+            nxt = now + period
+        self._timer.call_at(nxt, lambda: self._heartbeat(drive, generation, nxt))
+
+    # --- SYNC -------------------------------------------------------------------------------------
+    def _on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        self.guard(self._sync, bytes(data))
+
+    def _sync(self, data: bytes) -> None:
+        network = self._network
+        if network is None:
+            return
+        counter = data[0] if data else 0
+        ph = self.physics
+        if self.sim.clock == "lockstep":
+            ph.advance(self.substeps)
+        else:
+            self.catch_up()
+        if self._t_first is None:
+            self._t_first = ph.time_s
+        sim_t = ph.time_s - self._t_first
+        self._trigger_faults(sim_t, network)
+
+        n = self.robot.n
+        targets = np.zeros(n)
+        mask = np.zeros(n, dtype=bool)
+        for drive in self.drives.values():
+            target = drive.latch(counter)
+            if target is not None:
+                targets[drive.joint] = target / self._cpr[drive.joint]
+                mask[drive.joint] = True
+        ph.latch_targets(targets, mask, self.period_s)
+        done = ph.quick_stop_done()
+        if done.any():
+            for drive in self.drives.values():
+                if done[drive.joint]:
+                    drive.apply_quick_stop_end()
+        out = ph.evaluate()
+        fe_counts = np.rint(out.following_error * self._cpr).astype(int)
+        for drive in self.drives.values():
+            drive.check_following_error(int(fe_counts[drive.joint]), sim_t)
+        out = ph.evaluate()  # again: a fault just raised brakes a motor
+        self._publish_samples()
+        with self._lock:
+            self._history.append(
+                (
+                    self._sync_index,
+                    counter,
+                    ph.time_s,
+                    ph.q.copy(),
+                    ph.qd.copy(),
+                    out.qdd,
+                    out.tau,
+                    out.current_reference,
+                    out.current,
+                    ph.kinv @ out.setpoint,
+                )
+            )
+        self._sync_index += 1
+        for drive in self.drives.values():
+            for number, cob_id, payload in drive.tpdo_frames():
+                if number in drive.tpdo_dropped:
+                    continue
+                delay = drive.tpdo_delay.get(number, 0.0)
+                if delay > 0.0 and self._timer is not None:
+                    self._timer.call_at(
+                        time.monotonic() + delay,
+                        functools.partial(self._send_late, cob_id, payload),
+                    )
+                else:
+                    network.send_message(cob_id, payload)
+
+    def catch_up(self) -> None:
+        """Realtime clock: integrate up to the present (caller holds the physics lock)."""
+        target = int((time.monotonic() - self._t0) / self.dt)
+        self.physics.advance(target - self.physics.step_index)
+
+    def _send_late(self, cob_id: int, payload: bytes) -> None:
+        if self._network is not None:
+            self._network.send_message(cob_id, payload)
+
+    def _publish_samples(self) -> None:
+        """Measured values every drive reports (SDO reads and TPDOs) at this instant."""
+        ph = self.physics
+        out = ph.evaluate()
+        counts = ph.encoder_counts()
+        vel = np.rint(ph.motor_velocities() * self._cpr).astype(np.int64)
+        demand = np.rint(out.setpoint * self._cpr).astype(np.int64)
+        fe = np.rint(out.following_error * self._cpr).astype(np.int64)
+        for drive in self.drives.values():
+            j = drive.joint
+            rated_a = drive.rated_ma / 1000.0
+            torque_demand = round(out.current_reference[j] / rated_a * 1000.0)
+            current = round(out.current[j] / rated_a * 1000.0)
+            drive.sample = {
+                ob.POSITION_ACTUAL: int(counts[j]),
+                ob.VELOCITY_ACTUAL: int(vel[j]),
+                ob.POSITION_DEMAND: int(demand[j]),
+                ob.FOLLOWING_ERROR_ACTUAL: int(fe[j]),
+                ob.TORQUE_DEMAND: torque_demand,
+                ob.CURRENT_ACTUAL: current,
+                ob.TORQUE_ACTUAL: current,
+            }
+
+    # --- faults -----------------------------------------------------------------------------------
+    def _trigger_faults(self, sim_t: float, network: canopen.Network) -> None:
+        due = [s for s in self._pending_faults if s.at_s <= sim_t + 1e-12]
+        if not due:
+            return
+        self._pending_faults = [s for s in self._pending_faults if s not in due]
+        for spec in due:
+            drive = self.drives.get(spec.node) if spec.node is not None else None
+            if spec.kind == FaultKind.EMCY and drive is not None:
+                drive.inject_fault(spec.effective_code or 0, emcy=True)
+            elif spec.kind == FaultKind.FAULT and drive is not None:
+                drive.inject_fault(spec.effective_code or 0, emcy=False)
+            elif spec.kind == FaultKind.HEARTBEAT_STOP and drive is not None:
+                drive.heartbeat_stopped = True
+            elif spec.kind == FaultKind.TPDO_MISSING and drive is not None:
+                drive.tpdo_dropped |= {spec.tpdo} if spec.tpdo else {1, 2, 3, 4}
+            elif spec.kind == FaultKind.TPDO_LATE and drive is not None:
+                for number in (spec.tpdo,) if spec.tpdo else (1, 2, 3, 4):
+                    drive.tpdo_delay[number] = spec.delay_s
+            elif spec.kind == FaultKind.BUS_ERROR:
+                frame = can.Message(
+                    arbitration_id=CAN_ERR_BUSOFF, is_error_frame=True, data=bytes(8)
+                )
+                with network.send_lock:
+                    assert network.bus is not None
+                    network.bus.send(frame)
+            with self._lock:
+                self._fault_log.append(FaultRecord(spec, sim_t, time.monotonic()))
