@@ -112,7 +112,9 @@ def base_parameters(
     w = stack_joint_major(standard_regressor(model, *random_states(model, samples, rng)))
     # Scale columns to unit norm so the rank decision does not depend on units.
     norms = np.linalg.norm(w, axis=0)
-    nonzero = norms > 0.0
+    # Columns of parameters without effect are exactly zero in theory but round-off in practice
+    # (MZ2 of the TX-40 comes out near 1e-14): a relative threshold, not "> 0".
+    nonzero = norms > rank_tolerance * norms.max()
     ws = w[:, nonzero] / norms[nonzero]
     col_idx = np.flatnonzero(nonzero)
     _, r_piv, _ = scipy.linalg.qr(ws, mode="economic", pivoting=True)

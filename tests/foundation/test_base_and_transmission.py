@@ -29,9 +29,10 @@ def tx40():
 def test_tx40_counts(tx40) -> None:
     assert n_standard(tx40.robot) == 86
     bp = base_parameters(tx40)
-    # 55 inertial + friction parameters (Ia6 and both coupling terms included) + 6 offsets.
-    assert bp.n_base == 61
-    assert sum(not n.startswith("OFF") for n in bp.names) == 55
+    # 54 inertial + friction parameters (Ia6 and both coupling terms included) + 6 offsets.
+    assert bp.n_base == 60
+    assert sum(not n.startswith("OFF") for n in bp.names) == 54
+    assert "MZ2" not in bp.names  # its column is round-off: no effect on any joint
     for name in ("Ia6", "fvm6", "fcm6", "Ia3", "Ia4", "Ia5"):
         assert name in bp.names
     zz1 = next(e for e in bp.expressions if e.startswith("ZZ1R"))
@@ -93,3 +94,45 @@ def test_coupled_current_matrix_matches_power_conservation(tx40) -> None:
     np.testing.assert_array_equal(vm[:, 5, 5], v[:, 5])
     assert np.count_nonzero(vm[0]) == 7
     np.testing.assert_allclose(currents_for_torque(robot, expected, g), v, rtol=1e-10)
+
+
+_FIGAROH_NAMES = {"Izz": "ZZ", "Ixx": "XX", "Iyy": "YY", "Ixy": "XY", "Ixz": "XZ", "Iyz": "YZ",
+                  "mx": "MX", "my": "MY", "mz": "MZ", "m": "M", "fv": "Fv", "fs": "Fc",
+                  "off": "OFF", "Ia": "Ia", "Iam": "Ia", "fvm": "fvm", "fsm": "fcm"}  # fmt: skip
+
+
+def _parse_figaroh(expr: str) -> dict[str, float]:
+    """``Izz1 + 1.0*Ia1 - 0.05*m3`` -> {"ZZ1": 1, "Ia1": 1, "M3": -0.05}."""
+    import re
+
+    terms: dict[str, float] = {}
+    for sign, coef, name in re.findall(r"([+-]?)\s*(?:([\d.]+)\*)?([A-Za-z]+\d)", expr):
+        base, idx = re.match(r"([A-Za-z]+)(\d)", name).groups()  # type: ignore[union-attr]
+        value = float(coef) if coef else 1.0
+        terms[_FIGAROH_NAMES[base] + idx] = -value if sign == "-" else value
+    return terms
+
+
+def test_base_set_matches_published_tx40_base_set(tx40, tx40_real) -> None:
+    """An independent source: the base parameters published with the real TX-40 recording."""
+    import csv
+
+    published = [
+        _parse_figaroh(row[0])
+        for row in csv.reader((tx40_real / "figaroh_TX40_bp_5.csv").open())
+        if row
+    ]
+    ours = []
+    bp = base_parameters(tx40)
+    for row, k in enumerate(bp.base_index):
+        terms = {bp.standard_names[k]: 1.0}
+        for c, d in enumerate(bp.dependent_index):
+            if bp.beta[row, c]:
+                terms[bp.standard_names[d]] = float(bp.beta[row, c])
+        ours.append(terms)
+    assert len(ours) == len(published) == 60
+    key = lambda t: sorted(t)  # noqa: E731
+    for mine, theirs in zip(sorted(ours, key=key), sorted(published, key=key), strict=True):
+        assert mine.keys() == theirs.keys()
+        for name, value in theirs.items():
+            assert mine[name] == pytest.approx(value, abs=5e-6)

@@ -32,7 +32,7 @@ def test_model_info_prints_counts(capsys) -> None:
     assert main(["model", "info", "--robot", str(resource_path("tx40.toml"))]) == 0
     out = capsys.readouterr().out
     assert "standard parameters: 86" in out
-    assert "base parameters: 61" in out
+    assert "base parameters: 60" in out
     assert "ZZ1R = ZZ1 + Ia1 + YY2" in out
     assert "cond(W_base)" in out
 
