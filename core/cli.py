@@ -87,6 +87,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--plot", type=Path, help="PNG of the joint trajectories (default: beside --out)"
     )
+    p.add_argument(
+        "--start", help="pose at rest the approach starts from, rad, 'q1,...,qn' (default: zeros)"
+    )
+    p.add_argument(
+        "--nominal",
+        type=Path,
+        help="nominal dynamic parameters for the WTLS criterion (sim-truth TOML; default: the "
+        "shipped model of a known robot)",
+    )
+    p.add_argument("--jobs", type=int, help="worker processes (default: up to 2)")
+    p.add_argument(
+        "--position-margin", type=float, help="margin kept from each position limit, rad (0.1)"
+    )
+    p.add_argument(
+        "--limit-fraction",
+        type=float,
+        help="fraction of the velocity/acceleration/jerk limits used (0.95)",
+    )
     p.set_defaults(handler="excite")
 
     p = sub.add_parser("acquire", parents=[common], help="one acquisition session (foreground)")
@@ -107,7 +125,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--loaded", type=Path, help="run b (with the payload), MCAP")
     p.add_argument("--payload", type=Path, help="payload TOML of run b")
     p.add_argument(
-        "--gains", default="apriori", help="'apriori', a TOML with values = [...], or a report.json"
+        "--gains",
+        help="fix the gains and skip IDIM-WTLS: 'apriori' (the robot file's), 'gear-ratios', a "
+        "TOML with values = [...] (std = [...] optional), or a report.json; default: identify "
+        "them when --loaded is given, else use the a priori gains",
     )
     p.add_argument("--validate", type=Path, help="a third run with a second payload (Table 5)")
     p.add_argument("--validate-payload", type=Path, help="payload TOML of the --validate run")
@@ -115,6 +136,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--alpha", type=float, help="fix the V column weight instead of searching")
     p.add_argument("--cutoff", type=float, help="low-pass cut-off of positions, Hz")
     p.add_argument("--decimate", type=int, help="decimation factor")
+    p.add_argument(
+        "--reference",
+        type=Path,
+        help="published base parameters to compare with (CSV: expression, value, %%σ, ...)",
+    )
     p.add_argument("--out", type=Path, required=True, help="report folder")
     p.set_defaults(handler="identify")
 
