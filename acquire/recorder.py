@@ -138,6 +138,11 @@ class Recorder:
         self._thread.start()
 
     @property
+    def closed(self) -> bool:
+        """:meth:`finish` or :meth:`abandon` was called."""
+        return self._closed
+
+    @property
     def failed(self) -> BaseException | None:
         """The exception that stopped the writer, if any."""
         return self._error

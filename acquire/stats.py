@@ -60,14 +60,19 @@ class LoopStats:
 
     ``wake_late`` is how late the loop woke after each absolute deadline (realtime only);
     ``sync_dev`` is the deviation of the interval between consecutive SYNCs from the period;
-    ``service`` the time from SYNC to the last TPDO of the cycle. ``late_tpdo`` / ``missing_tpdo``
-    count, per node id, the cycles whose TPDOs arrived after the cycle's deadline or not at all.
+    ``service`` the time from SYNC to the last TPDO of the cycle; ``late_cycles`` the cycles whose
+    last TPDO came more than one period after the SYNC. ``late_tpdo`` / ``missing_tpdo`` count,
+    per node id, the TPDOs that arrived after their cycle was over or not at all (a missing TPDO
+    stops the run, so it is counted once at most). ``wall_s`` is the wall time of the cycle loop
+    (``speed`` in the summary: simulated seconds per wall second).
     """
 
     period_s: float
     clock: str
     cycles: int = 0
     overruns: int = 0
+    late_cycles: int = 0
+    wall_s: float = 0.0
     wake_late: Histogram = field(default_factory=Histogram)
     sync_dev: Histogram = field(default_factory=Histogram)
     service: Histogram = field(default_factory=Histogram)
@@ -85,6 +90,9 @@ class LoopStats:
             "period_s": f"{self.period_s:g}",
             "cycles": str(self.cycles),
             "overruns": str(self.overruns),
+            "late_cycles": str(self.late_cycles),
+            "wall_s": f"{self.wall_s:.3f}",
+            "speed": f"{self.cycles * self.period_s / self.wall_s:.3f}" if self.wall_s else "0",
             "sync_jitter_p50_us": us(self.sync_dev, 0.5),
             "sync_jitter_p99_us": us(self.sync_dev, 0.99),
             "sync_jitter_max_us": f"{self.sync_dev.max_ns / 1e3:.1f}",

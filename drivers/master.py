@@ -481,8 +481,14 @@ class Master:
         for d in self._drives:
             if not self._alive(d):
                 continue
+            # QUICK STOP ACTIVE ignores "shutdown": only "disable voltage" leaves it (CiA 402).
+            cw = (
+                int(Command.DISABLE_VOLTAGE)
+                if d.state == State.QUICK_STOP_ACTIVE
+                else self._controlword
+            )
             try:
-                self._download(d, ob.CONTROLWORD, 0, "H", self._controlword)
+                self._download(d, ob.CONTROLWORD, 0, "H", cw)
                 self._wait_state(d, lambda s: s not in POWERED, self.timeouts.state_s)
             except Exception as exc:
                 self._event("error", d.node_id, None, f"disable failed: {exc}")

@@ -1,0 +1,112 @@
+"""When to send the next SYNC: absolute deadlines (``realtime``) or at once (``lockstep``).
+
+Realtime deadlines are absolute (``t0 + k·period`` on the monotonic clock), so sleep errors do not
+accumulate. A cycle that starts more than one full period late is an overrun: the schedule is
+re-anchored at the present (no burst of catch-up SYNCs, which a drive in cyclic synchronous mode
+would misread as a huge velocity) and the overrun is counted.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Protocol
+
+from drivegain.acquire.stats import LoopStats
+
+
+class Pacer(Protocol):
+    """Paces the cycle loop and stamps each cycle's log time."""
+
+    def start(self) -> None: ...
+
+    def wait(self, cycle: int) -> int:
+        """Block until cycle ``cycle`` may start; return its log time (ns since the epoch)."""
+        ...
+
+    def now_log_ns(self) -> int:
+        """The log time of "now" for events between cycles, ns."""
+        ...
+
+
+class LockstepPacer:
+    """No waiting: the simulator advances one period per SYNC.
+
+    Log times are simulated: the wall time of the start plus ``cycle · period``, so they are
+    evenly spaced and deterministic in the period whatever the machine's speed.
+    """
+
+    def __init__(self, period_s: float, stats: LoopStats):
+        self.period_ns = round(period_s * 1e9)
+        self.stats = stats
+        self.epoch_ns = 0
+        self._cycle = 0
+
+    def start(self) -> None:
+        self.epoch_ns = time.time_ns()
+
+    def wait(self, cycle: int) -> int:
+        self._cycle = cycle
+        return self.epoch_ns + cycle * self.period_ns
+
+    def now_log_ns(self) -> int:
+        return self.epoch_ns + self._cycle * self.period_ns
+
+
+class RealtimePacer:
+    """Absolute deadlines on the monotonic clock, log times on the wall clock.
+
+    Parameters
+    ----------
+    period_s
+        SYNC period, s.
+    stats
+        Receives the wake-up lateness of every cycle and the overrun count.
+    spin_s
+        The last ``spin_s`` before a deadline are busy-waited rather than slept (0 = sleep only;
+        a few hundred µs trade CPU for lower jitter on a loaded machine).
+    """
+
+    def __init__(self, period_s: float, stats: LoopStats, spin_s: float = 0.0):
+        self.period_ns = round(period_s * 1e9)
+        self.stats = stats
+        self.spin_ns = round(spin_s * 1e9)
+        self._t0 = 0
+        self._offset = 0  # cycles skipped by re-anchoring
+        self._wall_minus_mono = 0
+        self.consecutive_overruns = 0
+
+    def start(self) -> None:
+        mono = time.monotonic_ns()
+        self._wall_minus_mono = time.time_ns() - mono
+        # the first deadline one period from now leaves room for the first RPDOs
+        self._t0 = mono + self.period_ns
+        self._offset = 0
+
+    def deadline_ns(self, cycle: int) -> int:
+        """Monotonic deadline of ``cycle``, ns."""
+        return self._t0 + (cycle + self._offset) * self.period_ns
+
+    def wait(self, cycle: int) -> int:
+        deadline = self.deadline_ns(cycle)
+        now = time.monotonic_ns()
+        remaining = deadline - now - self.spin_ns
+        if remaining > 0:
+            time.sleep(remaining / 1e9)
+        if self.spin_ns:
+            while time.monotonic_ns() < deadline:
+                pass
+        now = time.monotonic_ns()
+        late = now - deadline
+        if late > self.period_ns:
+            # missed a whole period: re-anchor so that this cycle is on time from now on
+            self.stats.overruns += 1
+            self.consecutive_overruns += 1
+            self._offset += late // self.period_ns
+            late = now - self.deadline_ns(cycle)
+        else:
+            self.consecutive_overruns = 0
+        self.stats.wake_late.add(late)
+        return now + self._wall_minus_mono
+
+    def now_log_ns(self) -> int:
+        return time.time_ns()

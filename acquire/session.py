@@ -1,0 +1,637 @@
+"""One acquisition session: checks, enable, approach / excitation / retreat, disable, finished log.
+
+The cycle loop runs on the thread that calls :meth:`Session.run` (one thread; the caller starts a
+dedicated one). Each cycle: wait for the deadline (``realtime``) or not at all (``lockstep``), send
+the setpoints and SYNC and collect the TPDOs (:meth:`Master.cycle`), supervise, hand the cycle to
+the recorder thread. Faults (drive, bus, supervision, recorder) quick-stop every drive and finish
+the log with the fault as its last event; an operator stop decelerates to rest with a
+jerk-limited ruckig profile, disables and finishes the log with the stop recorded.
+"""
+
+from __future__ import annotations
+
+import gc
+import logging
+import os
+import re
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from enum import StrEnum
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from drivegain import __version__
+from drivegain.acquire.checks import check_bus_load, check_excitation, check_motion
+from drivegain.acquire.config import AcquisitionConfig
+from drivegain.acquire.pacing import LockstepPacer, Pacer, RealtimePacer
+from drivegain.acquire.recorder import (
+    CycleRecord,
+    EventRecord,
+    Recorder,
+    RecorderError,
+    RecorderOverrun,
+)
+from drivegain.acquire.stats import LoopStats
+from drivegain.acquire.stop import StopRequest
+from drivegain.acquire.supervision import Supervisor
+from drivegain.config.payload import Payload, load_payload
+from drivegain.drivers.bus import BusLoad
+from drivegain.drivers.master import DriveEvent, Master
+from drivegain.drivers.objects import EmcyCode
+from drivegain.errors import DriveError, DrivegainError, InputError, OperatorStop
+from drivegain.excite.motion import Motion, Phase
+from drivegain.excite.motion import plan_stop as plan_stop_motion
+from drivegain.excite.trajectory import ExcitationFile, load_trajectory
+from drivegain.identify.logformat import LogWriter, RunMetadata, utc_now_iso
+
+log = logging.getLogger(__name__)
+
+#: what the master's event says about a TPDO that arrived after its cycle was over
+_STALE_TPDO = "arrived during SYNC"
+_LABEL = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+
+
+class RunState(StrEnum):
+    """Where a session is. ``FINISHED``, ``STOPPED`` and ``FAULT`` are final."""
+
+    PLANNED = "planned"
+    ENABLING = "enabling"
+    APPROACH = "approach"
+    EXCITATION = "excitation"
+    RETREAT = "retreat"
+    SETTLING = "settling"
+    STOPPING = "stopping"
+    DISABLING = "disabling"
+    FINISHED = "finished"
+    STOPPED = "stopped"
+    FAULT = "fault"
+
+
+_PHASE_STATE = {
+    Phase.APPROACH: RunState.APPROACH,
+    Phase.EXCITATION: RunState.EXCITATION,
+    Phase.RETREAT: RunState.RETREAT,
+    Phase.STOP: RunState.STOPPING,
+}
+
+
+class AcquisitionFault(DriveError):
+    """The cycle loop itself cannot go on (missed deadlines, operator quick stop)."""
+
+
+@dataclass(frozen=True)
+class RunRequest:
+    """What to run: trajectory JSON, log to write (``.mcap``), run label, payload TOML."""
+
+    trajectory: Path
+    out: Path
+    label: str | None = None
+    payload: Path | None = None
+
+
+@dataclass(frozen=True)
+class PreparedRun:
+    """A request whose files were read and checked (nothing written, bus untouched)."""
+
+    request: RunRequest
+    label: str
+    excitation: ExcitationFile
+    payload: Payload | None
+    attachments: tuple[tuple[str, str, bytes], ...]
+    bus_load: BusLoad
+    warnings: tuple[str, ...]
+
+
+@dataclass
+class RunResult:
+    """The outcome of a session (also kept on the session when it raised)."""
+
+    path: Path | None
+    state: RunState
+    cycles: int
+    stats: dict[str, str] = field(default_factory=dict)
+    stop_reason: str | None = None
+    fault: str | None = None
+    max_following_error: list[float] = field(default_factory=list)
+
+
+def validate_label(label: str) -> str:
+    """A run label usable in a file name.
+
+    Raises
+    ------
+    InputError
+        The label is empty or has characters other than letters, digits, ``_ . -``.
+    """
+    if not _LABEL.match(label):
+        raise InputError(
+            f"run label {label!r} must be 1-64 letters, digits, '_', '.' or '-'", key="label"
+        )
+    return label
+
+
+def prepare_run(cfg: AcquisitionConfig, request: RunRequest) -> PreparedRun:
+    """Read and check everything that does not need the bus; write nothing.
+
+    Raises
+    ------
+    InputError
+        A bad trajectory, payload, output path or label, or a bus that cannot carry the cycle.
+    """
+    out = request.out
+    if out.suffix != ".mcap":
+        raise InputError("the log must be a .mcap file", file=out)
+    for existing in (out, out.with_name(out.name + ".part")):
+        if existing.exists():
+            raise InputError("already exists (a log is never overwritten)", file=existing)
+    if out.parent.exists() and not out.parent.is_dir():
+        raise InputError("is not a directory", file=out.parent)
+    robot = cfg.robot
+    traj_bytes = _read_bytes(request.trajectory)
+    excitation = load_trajectory(request.trajectory)
+    excitation.check_robot(robot)
+    check_excitation(robot, excitation.fourier, cfg.period_s, file=request.trajectory)
+    payload = None
+    attachments: list[tuple[str, str, bytes]] = [
+        (cfg.robot_path.name, "application/toml", _read_bytes(cfg.robot_path))
+    ]
+    if request.payload is not None:
+        payload_bytes = _read_bytes(request.payload)
+        payload = load_payload(request.payload)
+        attachments.append((request.payload.name, "application/toml", payload_bytes))
+    attachments.append((request.trajectory.name, "application/json", traj_bytes))
+    label = validate_label(request.label or ("loaded" if payload is not None else "unloaded"))
+    load, warning = check_bus_load(
+        robot.n, cfg.period_s, cfg.bus.bitrate, warn=cfg.bus_load_warn, config=cfg.source
+    )
+    return PreparedRun(
+        request=request,
+        label=label,
+        excitation=excitation,
+        payload=payload,
+        attachments=tuple(attachments),
+        bus_load=load,
+        warnings=(warning,) if warning else (),
+    )
+
+
+def _read_bytes(path: Path) -> bytes:
+    try:
+        return path.read_bytes()
+    except FileNotFoundError:
+        raise InputError("file not found", file=path) from None
+    except IsADirectoryError:
+        raise InputError("is a directory, expected a file", file=path) from None
+    except OSError as exc:
+        raise InputError(f"cannot read ({exc.strerror})", file=path) from None
+
+
+class _Setpoints:
+    """Samples a motion at the cycle times, a block at a time (bounded memory)."""
+
+    def __init__(self, motion: Motion, period_s: float, first_cycle: int, block: int = 256):
+        self.motion = motion
+        self.period_s = period_s
+        self.first = first_cycle
+        self.block = block
+        self._start = -1
+        self._q = self._qd = self._qdd = np.empty((0, 0))
+
+    def t(self, cycle: int) -> float:
+        """Time into the motion of ``cycle``, s."""
+        return (cycle - self.first) * self.period_s
+
+    def done(self, cycle: int) -> bool:
+        return self.t(cycle) > self.motion.duration_s + 1e-12
+
+    def state(self, cycle: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Setpoint position, velocity and acceleration of ``cycle`` (held after the end)."""
+        i = cycle - self.first
+        if not self._start <= i < self._start + len(self._q):
+            self._start = i
+            t = (i + np.arange(self.block)) * self.period_s
+            self._q, self._qd, self._qdd = self.motion.sample(np.minimum(t, self.motion.duration_s))
+        j = i - self._start
+        return self._q[j], self._qd[j], self._qdd[j]
+
+
+class Session:
+    """One run on a booted master.
+
+    Parameters
+    ----------
+    cfg
+        The acquisition configuration.
+    master
+        A booted master (the caller owns it: boot before, close after).
+    prepared
+        The checked request (:func:`prepare_run`).
+    stop
+        Operator stop requests (signals, daemon ``stop``), polled every cycle.
+    pre_events
+        Drive events seen before the run (boot...), written at the start of the log.
+    on_cycle
+        Called on the cycle thread after every cycle with the session (progress displays);
+        must be quick.
+    """
+
+    def __init__(
+        self,
+        cfg: AcquisitionConfig,
+        master: Master,
+        prepared: PreparedRun,
+        *,
+        stop: StopRequest | None = None,
+        pre_events: Sequence[DriveEvent] = (),
+        on_cycle: Callable[[Session], None] | None = None,
+    ):
+        self.cfg = cfg
+        self.robot = cfg.robot
+        self.master = master
+        self.prepared = prepared
+        self.stop = stop if stop is not None else StopRequest()
+        self.on_cycle = on_cycle
+        self._pre_events = list(pre_events)
+        self.state = RunState.PLANNED
+        self.cycle = 0
+        self.t = 0.0
+        self.motion: Motion | None = None
+        self.duration_s = 0.0
+        self.result: RunResult | None = None
+        self.stats = LoopStats(period_s=cfg.period_s, clock=cfg.clock)
+        self.supervisor = Supervisor(self.robot, cfg.supervision, cfg.period_s)
+        self.bus_load = prepared.bus_load
+        self._warnings = list(prepared.warnings)
+        self._recorder: Recorder | None = None
+        self._pacer: Pacer | None = None
+
+    # -- planning ------------------------------------------------------------------------------
+
+    def plan(self) -> Motion:
+        """Plan approach + excitation + retreat from the drives' actual positions and check it.
+
+        Raises
+        ------
+        TrajectoryError
+            The motion from here would violate a limit (names the joint and limit).
+        """
+        cfg = self.cfg
+        # the same check as before the bus was touched, now with the drives' actual mapping
+        load, warning = check_bus_load(
+            self.robot.n,
+            cfg.period_s,
+            cfg.bus.bitrate,
+            warn=cfg.bus_load_warn,
+            config=cfg.source,
+            load=self.master.bus_load(cfg.bus.bitrate),
+        )
+        self.bus_load = load
+        if warning and warning not in self._warnings:
+            self._warnings.append(warning)
+        q0 = np.asarray(self.master.read_positions(), dtype=float)
+        motion = self.prepared.excitation.plan(self.robot, q0)
+        check_motion(self.robot, motion, self.cfg.period_s)
+        self.motion = motion
+        self.duration_s = motion.duration_s + self.cfg.settle_s
+        return motion
+
+    # -- the run -------------------------------------------------------------------------------
+
+    def run(self) -> RunResult:
+        """Enable, stream the motion, disable, finish the log.
+
+        Returns
+        -------
+        RunResult
+            ``state`` FINISHED, or STOPPED after an operator stop.
+
+        Raises
+        ------
+        DriveError
+            A drive, bus or supervision fault (after the quick stop and the finished log).
+        RecorderError
+            The log could not be written (the drives are quick-stopped).
+        """
+        if self.motion is None:
+            self.plan()
+        assert self.motion is not None
+        cfg, prep = self.cfg, self.prepared
+        prep.request.out.parent.mkdir(parents=True, exist_ok=True)
+        meta = RunMetadata(
+            robot=self.robot.name,
+            run=prep.label,
+            payload=prep.payload.name if prep.payload is not None else "none",
+            joint_names=self.robot.joint_names,
+            sync_period_s=cfg.period_s,
+            started_at=utc_now_iso(),
+            drivegain_version=__version__,
+            extra={
+                "clock": cfg.clock,
+                "bus_interface": cfg.bus.interface,
+                "bus_channel": cfg.bus.channel,
+                "bitrate": str(cfg.bus.bitrate),
+                "bus_load": f"{self.bus_load.load:.3f}",
+                "trajectory": prep.request.trajectory.name,
+                "host": os.uname().nodename,
+            },
+        )
+        writer = LogWriter(prep.request.out, meta, prep.attachments)
+        recorder = Recorder(
+            writer, capacity=cfg.queue_capacity, flush_interval_s=cfg.flush_interval_s
+        )
+        self._recorder = recorder
+        pacer: Pacer
+        if cfg.clock == "lockstep":
+            pacer = LockstepPacer(cfg.period_s, self.stats)
+        else:
+            pacer = RealtimePacer(cfg.period_s, self.stats)
+        self._pacer = pacer
+        pacer.start()
+        recorder.start()
+        gc_was_frozen = False
+        try:
+            self._event("info", f"run '{prep.label}' started", duration_s=f"{self.duration_s:.3f}")
+            for w in self._warnings:
+                log.warning("%s", w)
+                self._event("warning", w)
+            self._drive_events(self._pre_events)
+            self._set_realtime_priority()
+            self.state = RunState.ENABLING
+            self.master.enable()
+            self._drive_events(self.master.drain_events())
+            # a full collection now, then no gen-2 pauses inside the loop
+            gc.collect()
+            gc.freeze()
+            gc_was_frozen = True
+            self._loop(pacer, recorder)
+        except BaseException as exc:
+            self._on_fault(exc, recorder)
+            raise
+        finally:
+            if gc_was_frozen:
+                gc.unfreeze()
+        return self._finish_ok(recorder)
+
+    def _loop(self, pacer: Pacer, recorder: Recorder) -> None:
+        assert self.motion is not None
+        cfg = self.cfg
+        lockstep = cfg.clock == "lockstep"
+        setpoints = _Setpoints(self.motion, cfg.period_s, 0)
+        settle_cycles = round(cfg.settle_s / cfg.period_s)
+        period_ns = round(cfg.period_s * 1e9)
+        started = time.monotonic()
+        try:
+            self._cycles(pacer, recorder, setpoints, settle_cycles, lockstep, period_ns)
+        finally:
+            self.stats.wall_s = time.monotonic() - started
+
+    def _cycles(
+        self,
+        pacer: Pacer,
+        recorder: Recorder,
+        setpoints: _Setpoints,
+        settle_cycles: int,
+        lockstep: bool,
+        period_ns: int,
+    ) -> None:
+        assert self.motion is not None
+        cfg = self.cfg
+        stopping = False
+        end_cycle: int | None = None
+        phase: Phase | None = None
+        last_send = 0
+        k = 0
+        while True:
+            if self.stop.requested and not stopping:
+                setpoints = self._begin_stop(setpoints, k)
+                stopping = True
+                end_cycle = None
+            if stopping and self.stop.urgent:
+                raise AcquisitionFault(f"operator quick stop ({self.stop.reason}, requested twice)")
+            if end_cycle is None and setpoints.done(k):
+                end_cycle = k + settle_cycles
+                if not stopping:
+                    self.state = RunState.SETTLING
+            if end_cycle is not None and k >= end_cycle:
+                break
+            if not stopping and end_cycle is None:
+                ph = self.motion.phase(setpoints.t(k))
+                if ph != phase and ph in _PHASE_STATE:
+                    phase = ph
+                    self.state = _PHASE_STATE[ph]
+                    self._event("info", f"phase {ph.name.lower()}", phase=ph.name.lower())
+            q_sp = setpoints.state(k)[0]
+            log_ns = pacer.wait(k)
+            if isinstance(pacer, RealtimePacer) and (
+                pacer.consecutive_overruns > cfg.supervision.max_overruns
+            ):
+                raise AcquisitionFault(
+                    f"{pacer.consecutive_overruns} consecutive cycles missed their deadline "
+                    f"by more than one period (cycle {k})"
+                )
+            sent = time.monotonic_ns()
+            interval_s = (sent - last_send) / 1e9 if k > 0 and not lockstep else None
+            sample = self.master.cycle(q_sp)
+            self.stats.cycles += 1
+            self.stats.service.add(round(sample.latency_s * 1e9))
+            if sample.latency_s > cfg.period_s:
+                self.stats.late_cycles += 1
+            if k > 0 and not lockstep:
+                self.stats.sync_dev.add(abs(sent - last_send - period_ns))
+            last_send = sent
+            if not lockstep:
+                log_ns = sample.sync_time_ns  # the SYNC's own wall-clock time
+            recorder.put_cycle(
+                CycleRecord(
+                    cycle=k,
+                    t=k * cfg.period_s,
+                    log_time_ns=log_ns,
+                    position=np.asarray(sample.position, dtype=float),
+                    current_reference=np.asarray(sample.current_reference, dtype=float),
+                    current=np.asarray(sample.current, dtype=float),
+                    setpoint=np.array(q_sp, dtype=float),
+                    raw=sample.raw,
+                ),
+                block=lockstep,
+            )
+            self.cycle, self.t = k, k * cfg.period_s
+            # after recording: the cycle that shows the fault is in the log
+            self.supervisor.check(k, sample.position, q_sp, interval_s)
+            self._drive_events(self.master.drain_events())
+            if self.on_cycle is not None:
+                self.on_cycle(self)
+            k += 1
+        self.cycle = k
+
+    def _begin_stop(self, setpoints: _Setpoints, k: int) -> _Setpoints:
+        """Plan the deceleration to rest from the setpoint state of the last cycle sent."""
+        q, qd, qdd = setpoints.state(max(k - 1, 0))
+        if k == 0:
+            qd, qdd = np.zeros_like(q), np.zeros_like(q)
+        stop_motion = plan_stop_motion(self.robot, q, qd, qdd)
+        self.state = RunState.STOPPING
+        self._event(
+            "warning",
+            f"operator stop ({self.stop.reason}): decelerating to rest in "
+            f"{stop_motion.duration_s:.2f} s",
+            reason=self.stop.reason or "",
+            cycle=k,
+        )
+        log.warning("operator stop (%s): decelerating to rest", self.stop.reason)
+        for w in stop_motion.warnings:
+            self._event("warning", w)
+        # the stop starts from the state of cycle k-1, so its t = 0 is that cycle: cycle k
+        # continues one period into it (no repeated setpoint, no velocity jump)
+        return _Setpoints(stop_motion, self.cfg.period_s, max(k - 1, 0))
+
+    # -- endings -------------------------------------------------------------------------------
+
+    def _finish_ok(self, recorder: Recorder) -> RunResult:
+        stopped = self.stop.requested
+        self.state = RunState.DISABLING
+        try:
+            self.master.disable()
+            self._drive_events(self.master.drain_events())
+            stats = self.stats.summary()
+            self._event("info", "cycle statistics", **stats)
+            if stopped:
+                self._event(
+                    "warning",
+                    f"operator stop ({self.stop.reason}): robot at rest, drives disabled",
+                    reason=self.stop.reason or "",
+                )
+            else:
+                self._event("info", f"run finished: {self.cycle} cycles")
+        except BaseException as exc:
+            self._on_fault(exc, recorder)
+            raise
+        path = recorder.finish()
+        self.state = RunState.STOPPED if stopped else RunState.FINISHED
+        self.result = RunResult(
+            path=path,
+            state=self.state,
+            cycles=self.cycle,
+            stats=stats,
+            stop_reason=self.stop.reason if stopped else None,
+            max_following_error=self.supervisor.max_following_error.tolist(),
+        )
+        log.info("run %s: %s, %d cycles, log %s", self.prepared.label, self.state, self.cycle, path)
+        return self.result
+
+    def _on_fault(self, exc: BaseException, recorder: Recorder) -> None:
+        """Quick stop, then finish the log with the fault as its last event. Never raises."""
+        # the events the drives sent up to the fault, before the quick stop adds its own
+        pending: list[DriveEvent] = []
+        try:
+            pending = list(self.master.drain_events())
+        except Exception as e:  # on the way down nothing may stop the quick stop
+            log.error("draining drive events failed: %s", e)
+        self.master.quick_stop()
+        self.master.disable()
+        self.state = RunState.FAULT
+        text = str(exc) or type(exc).__name__
+        node = getattr(exc, "node", None)
+        code = getattr(exc, "code", None)
+        log.error("fault at cycle %d: %s; all drives quick-stopped", self.cycle, text)
+        if isinstance(exc, DriveError) and exc.code == int(EmcyCode.PDO_TIMEOUT) and node:
+            self.stats.missing_tpdo[node] += 1
+        path: Path | None = None
+        writable = recorder.failed is None and (
+            isinstance(exc, RecorderOverrun) or not isinstance(exc, RecorderError)
+        )
+        if writable:
+            try:
+                self._drive_events(pending)
+                self._event("info", "cycle statistics", **self.stats.summary())
+                fields: dict[str, Any] = {"action": "quick stop", "cycle": self.cycle}
+                if not isinstance(exc, DrivegainError):
+                    fields["exception"] = type(exc).__name__
+                drive_state = getattr(exc, "state", None)
+                if drive_state is not None:
+                    fields["drive_state"] = drive_state
+                self._event("fault", text, node=node, code=code, **fields)
+                path = recorder.finish()
+            except Exception as e:
+                log.error("finishing the log after the fault failed: %s", e)
+                if not recorder.closed:
+                    _safe_abandon(recorder)
+        else:
+            _safe_abandon(recorder)
+        try:
+            for ev in self.master.drain_events():
+                log.info("after the quick stop: node %s: %s", ev.node, ev.text)
+        except Exception:
+            pass
+        self.result = RunResult(
+            path=path,
+            state=RunState.FAULT,
+            cycles=self.cycle,
+            stats=self.stats.summary(),
+            fault=text,
+            max_following_error=self.supervisor.max_following_error.tolist(),
+        )
+
+    # -- helpers -------------------------------------------------------------------------------
+
+    def _event(
+        self,
+        level: str,
+        text: str,
+        *,
+        node: int | None = None,
+        code: int | None = None,
+        **fields: Any,
+    ) -> None:
+        assert self._recorder is not None and self._pacer is not None
+        self._recorder.put_event(
+            EventRecord(
+                log_time_ns=self._pacer.now_log_ns(),
+                level=level,
+                text=text,
+                node=node,
+                code=code,
+                fields=fields,
+            )
+        )
+
+    def _drive_events(self, events: Sequence[DriveEvent]) -> None:
+        for ev in events:
+            if ev.node is not None and _STALE_TPDO in ev.text:
+                # a TPDO that came after its cycle was over: late on this node
+                self.stats.late_tpdo[ev.node] += 1
+            log.log(
+                logging.WARNING if ev.level in ("warning", "error", "fault") else logging.DEBUG,
+                "node %s: %s",
+                ev.node,
+                ev.text,
+            )
+            self._event(ev.level, ev.text, node=ev.node, code=ev.code, drive_time_ns=ev.time_ns)
+
+    def _set_realtime_priority(self) -> None:
+        prio = self.cfg.rt_priority
+        if prio <= 0 or self.cfg.clock != "realtime":
+            return
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(prio))
+        except (PermissionError, OSError) as exc:
+            text = f"cannot use SCHED_FIFO priority {prio} ({exc}): running at normal priority"
+            log.warning("%s", text)
+            self._event("warning", text)
+
+
+def _safe_abandon(recorder: Recorder) -> None:
+    try:
+        recorder.abandon()
+    except Exception as e:
+        log.error("closing the log failed: %s", e)
+
+
+def operator_stop_error(result: RunResult) -> OperatorStop:
+    """The :class:`OperatorStop` a command raises after a stopped run (exit status 0)."""
+    return OperatorStop(
+        f"run stopped by {result.stop_reason or 'the operator'} after {result.cycles} cycles; "
+        f"log finished at {result.path}"
+    )

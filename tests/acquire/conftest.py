@@ -1,0 +1,115 @@
+"""Helpers of the acquire tests: short trajectories, simulated-cell configs, leak checks."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import threading
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from drivegain.config import load_robot, resource_path
+from drivegain.excite.fourier import FourierTrajectory
+from drivegain.excite.trajectory import save_trajectory, trajectory_document
+
+_channels = itertools.count()
+
+
+def write_trajectory(
+    path: Path, *, base_hz: float = 0.5, periods: int = 1, scale: float = 0.3, seed: int = 0
+) -> Path:
+    """A small smooth Fourier excitation (2 harmonics) of the TX-40, well inside its limits."""
+    robot = load_robot(resource_path("tx40.toml"))
+    rng = np.random.default_rng(seed)
+    a = rng.uniform(-scale, scale, (robot.n, 2))
+    b = rng.uniform(-scale, scale, (robot.n, 2))
+    q0 = np.array([0.1, -0.2, 0.3, 0.0, 0.4, 0.0])
+    f = FourierTrajectory(base_hz, q0, a, b, periods)
+    return save_trajectory(path, trajectory_document(f, robot, {"cond": 0.0}))
+
+
+def write_config(
+    path: Path,
+    *,
+    clock: str = "lockstep",
+    period_s: float = 0.004,
+    faults: list[dict[str, Any]] = (),  # type: ignore[assignment]
+    acquisition: str = "",
+    daemon: str = "",
+    bitrate: int = 1_000_000,
+    noise: float = 0.05,
+) -> Path:
+    """An acquisition TOML of the simulated TX-40 on its own virtual channel."""
+    channel = f"acq-test-{next(_channels)}-{time.monotonic_ns()}"
+    lines = [
+        "[acquisition]",
+        f'robot = "{resource_path("tx40.toml")}"',
+        f"period_s = {period_s}",
+        acquisition,
+        "[bus]",
+        'interface = "virtual"',
+        f'channel = "{channel}"',
+        f"bitrate = {bitrate}",
+        "[simulation]",
+        f'clock = "{clock}"',
+        "seed = 3",
+        f"current_noise_nm = {noise}",
+        "history_s = 30.0",
+    ]
+    for f in faults:
+        lines.append("[[simulation.fault]]")
+        lines.extend(f"{k} = {json.dumps(v)}" for k, v in f.items())
+    if daemon:
+        lines += ["[daemon]", daemon]
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+@pytest.fixture(scope="session")
+def short_trajectory(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """About 3 s of motion: approach, one 2 s period at 0.5 Hz, retreat."""
+    return write_trajectory(tmp_path_factory.mktemp("traj") / "short.json")
+
+
+@pytest.fixture(scope="session")
+def long_trajectory(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """About 17 s of motion (8 periods at 0.5 Hz), for signals and concurrent requests."""
+    return write_trajectory(tmp_path_factory.mktemp("traj") / "long.json", periods=8)
+
+
+@pytest.fixture
+def make_config(tmp_path: Path) -> Callable[..., Path]:
+    counter = itertools.count()
+
+    def make(**kw: Any) -> Path:
+        return write_config(tmp_path / f"acq{next(counter)}.toml", **kw)
+
+    return make
+
+
+def _leaky_threads() -> set[threading.Thread]:
+    return {
+        t
+        for t in threading.enumerate()
+        if t.is_alive()
+        and (t.name.startswith("drivegain") or "Notifier" in t.name or "can.notifier" in t.name)
+    }
+
+
+@pytest.fixture(autouse=True)
+def no_leaked_threads() -> Iterator[None]:
+    """Fail a test that leaves a bus reader, simulator, recorder or cycle thread running."""
+    before = _leaky_threads()
+    yield
+    deadline = time.monotonic() + 3.0
+    while time.monotonic() < deadline:
+        leaked = _leaky_threads() - before
+        if not leaked:
+            return
+        time.sleep(0.05)
+    pytest.fail(f"threads left running: {sorted(t.name for t in leaked)}")

@@ -1,0 +1,91 @@
+"""``drivegain acquire`` in a subprocess: SIGTERM stops safely, SIGKILL leaves a readable .part."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from drivegain.config import load_robot, resource_path
+from drivegain.identify.logformat import iter_channel, read_run
+
+
+def _start(cfg: Path, trajectory: Path, out: Path) -> subprocess.Popen[bytes]:
+    return subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "drivegain.cli",
+            "acquire",
+            "--config",
+            str(cfg),
+            "--trajectory",
+            str(trajectory),
+            "--out",
+            str(out),
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
+
+
+def _wait_for_cycles(part: Path, proc: subprocess.Popen[bytes], cycles: int) -> int:
+    """Wait until the flushed .part holds at least ``cycles`` cycles (the writer flushes ~1 s)."""
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        assert proc.poll() is None, proc.communicate()
+        if part.exists():
+            try:
+                n = sum(1 for _ in iter_channel(part, "/joint_states"))
+            except Exception:
+                n = 0
+            if n >= cycles:
+                return n
+        time.sleep(0.2)
+    raise AssertionError("the run did not get going")
+
+
+def test_sigterm_stops_safely_and_finishes_the_log(
+    tmp_path: Path, make_config: Callable[..., Path], long_trajectory: Path
+) -> None:
+    out = tmp_path / "run.mcap"
+    proc = _start(make_config(acquisition="flush_interval_s = 0.2"), long_trajectory, out)
+    _wait_for_cycles(out.with_name("run.mcap.part"), proc, 600)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, err.decode()
+    assert b"stopped" in err
+    assert out.exists() and not out.with_name("run.mcap.part").exists()
+    log = read_run(out)
+    assert not log.truncated and np.all(np.diff(log.cycle) == 1) and log.cycle[0] == 0
+    assert log.events[-1]["text"].startswith("operator stop (SIGTERM): robot at rest")
+    assert log.cycle[-1] < 4000  # well before the planned end (about 4300 cycles)
+    robot = load_robot(resource_path("tx40.toml"))
+    v = np.diff(log.setpoint, axis=0) / log.sync_period_s
+    a = np.diff(v, axis=0) / log.sync_period_s
+    assert np.all(np.abs(a) <= robot.acceleration_limits * 1.01)
+    np.testing.assert_allclose(v[-20:], 0.0, atol=1e-9)
+    # the robot itself came to rest
+    np.testing.assert_allclose(np.diff(log.position[-20:], axis=0), 0.0, atol=2e-4)
+
+
+def test_sigkill_leaves_a_part_with_every_flushed_cycle(
+    tmp_path: Path, make_config: Callable[..., Path], long_trajectory: Path
+) -> None:
+    out = tmp_path / "run.mcap"
+    part = out.with_name("run.mcap.part")
+    proc = _start(make_config(acquisition="flush_interval_s = 0.2"), long_trajectory, out)
+    seen = _wait_for_cycles(part, proc, 500)
+    proc.kill()
+    proc.wait(timeout=30)
+    assert proc.returncode == -signal.SIGKILL
+    assert part.exists() and not out.exists()
+    log = read_run(part)
+    assert log.truncated and log.messages_recovered >= seen
+    np.testing.assert_array_equal(log.cycle, np.arange(log.cycle.size))
+    assert log.meta["run"] == "unloaded" and "tx40.toml" in log.attachments
