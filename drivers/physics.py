@@ -241,6 +241,9 @@ class RobotPhysics:
         self._qs_pos = xm.copy()
         self._qs_decel = np.full(self.n, np.inf)
         self._integral = np.zeros(self.n)
+        self._i_sum = np.zeros(self.n)
+        self._tau_sum = np.zeros(self.n)
+        self._i_steps = 0
         self._prev_meas = self._measured()
         self._pending: StepOutput | None = None
         self._pending_loop: tuple[np.ndarray, np.ndarray] = (np.zeros(self.n), self._prev_meas)
@@ -381,6 +384,23 @@ class RobotPhysics:
         xdd[free] = np.linalg.solve(m_motor[np.ix_(free, free)], f_motor[free])
         return self.kinv @ xdd
 
+    def take_period_means(self) -> tuple[np.ndarray, np.ndarray]:
+        """Mean current reference (A) and mean applied joint torque (N·m) over the steps
+        integrated since the last call (the last SYNC period).
+
+        Drives report a torque demand averaged over their reporting period: a point sample of
+        the fast current loop (velocity from encoder differences every step) would alias its
+        ripple into the identification band.
+        """
+        if self._i_steps == 0:
+            out = self.evaluate()
+            return out.current_reference.copy(), out.tau.copy()
+        means = (self._i_sum / self._i_steps, self._tau_sum / self._i_steps)
+        self._i_sum = np.zeros(self.n)
+        self._tau_sum = np.zeros(self.n)
+        self._i_steps = 0
+        return means
+
     def advance(self, steps: int) -> None:
         """Integrate ``steps`` internal steps (semi-implicit Euler)."""
         remaining = max(0, steps)
@@ -400,6 +420,9 @@ class RobotPhysics:
             grown = self._integral + self.loop.ki * ev * self.dt
             self._integral = np.where(powered, np.where(saturated, self._integral, grown), 0.0)
             self._prev_meas = meas
+            self._i_sum = self._i_sum + out.current_reference
+            self._tau_sum = self._tau_sum + out.tau
+            self._i_steps += 1
             self.qd = self.qd + out.qdd * self.dt
             if not self._all_powered:
                 xd = self.k @ self.qd

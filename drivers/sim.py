@@ -210,7 +210,9 @@ class SimHistory:
 
     ``tau`` are the joint torques the motors applied (N·m), ``current_reference`` and
     ``current`` the drives' currents (A, before the per-mille quantisation of the TPDOs),
-    ``setpoint`` the drives' interpolated setpoints mapped to the joints (rad).
+    ``setpoint`` the drives' interpolated setpoints mapped to the joints (rad), all at the SYNC
+    instant. ``current_reference_mean`` and ``tau_mean`` are averages over the SYNC period that
+    ends at the sample: what the drives report as torque demand, and the torque it produced.
     """
 
     sync_index: np.ndarray
@@ -223,6 +225,8 @@ class SimHistory:
     current_reference: np.ndarray
     current: np.ndarray
     setpoint: np.ndarray
+    current_reference_mean: np.ndarray
+    tau_mean: np.ndarray
 
     def __len__(self) -> int:
         return len(self.sync_index)
@@ -496,7 +500,7 @@ class SimulatedCell:
         if not rows:
             empty = np.zeros((0, n))
             return SimHistory(
-                np.zeros(0, int), np.zeros(0, int), np.zeros(0), *(empty.copy() for _ in range(7))
+                np.zeros(0, int), np.zeros(0, int), np.zeros(0), *(empty.copy() for _ in range(9))
             )
         cols = list(zip(*rows, strict=True))
         return SimHistory(
@@ -510,6 +514,8 @@ class SimulatedCell:
             current_reference=np.array(cols[7]),
             current=np.array(cols[8]),
             setpoint=np.array(cols[9]),
+            current_reference_mean=np.array(cols[10]),
+            tau_mean=np.array(cols[11]),
         )
 
     # --- services used by the drives --------------------------------------------------------------
@@ -586,7 +592,8 @@ class SimulatedCell:
         for drive in self.drives.values():
             drive.check_following_error(int(fe_counts[drive.joint]), sim_t)
         out = ph.evaluate()  # again: a fault just raised brakes a motor
-        self._publish_samples()
+        i_mean, tau_mean = ph.take_period_means()
+        self._publish_samples(i_mean)
         with self._lock:
             self._history.append(
                 (
@@ -600,6 +607,8 @@ class SimulatedCell:
                     out.current_reference,
                     out.current,
                     ph.kinv @ out.setpoint,
+                    i_mean,
+                    tau_mean,
                 )
             )
         self._sync_index += 1
@@ -625,10 +634,16 @@ class SimulatedCell:
         if self._network is not None:
             self._network.send_message(cob_id, payload)
 
-    def _publish_samples(self) -> None:
-        """Measured values every drive reports (SDO reads and TPDOs) at this instant."""
+    def _publish_samples(self, i_mean: np.ndarray | None = None) -> None:
+        """Measured values every drive reports (SDO reads and TPDOs) at this instant.
+
+        ``i_mean`` is the current reference averaged over the SYNC period just ended (A); the
+        torque demand reports it. Outside SYNC (start-up) the instantaneous value is used.
+        """
         ph = self.physics
         out = ph.evaluate()
+        if i_mean is None:
+            i_mean = out.current_reference
         counts = ph.encoder_counts()
         vel = np.rint(ph.motor_velocities() * self._cpr).astype(np.int64)
         demand = np.rint(out.setpoint * self._cpr).astype(np.int64)
@@ -636,7 +651,7 @@ class SimulatedCell:
         for drive in self.drives.values():
             j = drive.joint
             rated_a = drive.rated_ma / 1000.0
-            torque_demand = round(out.current_reference[j] / rated_a * 1000.0)
+            torque_demand = round(i_mean[j] / rated_a * 1000.0)
             current = round(out.current[j] / rated_a * 1000.0)
             drive.sample = {
                 ob.POSITION_ACTUAL: int(counts[j]),

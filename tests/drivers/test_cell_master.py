@@ -42,6 +42,7 @@ def test_stream_10_s_in_lockstep_tracks_and_reproduces_torques(tx40, channel, ri
         targets = smooth_trajectory(t + PERIOD, q0)
         samples = run(rig, targets)
         history = rig.cell.joint_torque_history()
+        substeps = rig.cell.substeps
         events = rig.master.drain_events()
         assert rig.cell.errors == []
     assert [e for e in events if e.level == "error"] == []
@@ -72,14 +73,15 @@ def test_stream_10_s_in_lockstep_tracks_and_reproduces_torques(tx40, channel, ri
     tau_id = standard_regressor(model, history.q, history.qd, history.qdd) @ chi
     np.testing.assert_allclose(tau_id, history.tau, atol=1e-8)
 
-    # Recorded current references x true gains through the coupling = applied torques + noise.
+    # Recorded current references (the drives' torque demand, averaged over the SYNC period)
+    # x true gains through the coupling = the torques applied over that period + noise.
     gains = load_truth(resource_path("sim/tx40-truth.toml")).gains
-    residual = history.tau - joint_torque(tx40, i_ref, gains)
+    residual = history.tau_mean - joint_torque(tx40, i_ref, gains)
     rated = np.array([j.rated_current for j in tx40.joints])
     permille_step = np.abs(gains) * rated / 1000.0  # torque of one per-mille step
     quant_var = permille_step**2 / 12.0
-    noise_var = np.full(6, NOISE_NM**2)
-    noise_var[4] += NOISE_NM**2  # motor 6 also torques joint 5
+    noise_var = np.full(6, NOISE_NM**2 / substeps)  # independent per step, averaged
+    noise_var[4] += NOISE_NM**2 / substeps  # motor 6 also torques joint 5
     quant_var[4] += quant_var[5]
     expected_std = np.sqrt(noise_var + quant_var)
     std = residual.std(axis=0)
