@@ -1,0 +1,565 @@
+"""``drivegain identify``: logs in, drive gains, dynamic parameters and reports out.
+
+Reads the runs (:mod:`.logformat`), filters and decimates them (:mod:`.prepare`), runs the
+paper's procedure (:mod:`.procedure`) and writes ``report.json``, ``report.md`` and the plots.
+Everything is written into a temporary folder beside ``--out`` and moved into place only when
+complete: a failure leaves ``--out`` untouched.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import shutil
+import sys
+import tempfile
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from drivegain.config._toml import Table, read_toml
+from drivegain.config.payload import Payload, load_payload
+from drivegain.config.robot import Robot, WristFriction, load_robot
+from drivegain.errors import DataError, InputError
+from drivegain.identify.blas import limited_blas_threads
+from drivegain.identify.logformat import RunLog, read_run
+from drivegain.identify.model import RobotModel, build_model
+from drivegain.identify.prepare import (
+    PreparedRun,
+    bases_for_forms,
+    prepare_recording,
+    stored_columns,
+    trajectory_bandwidth,
+    trajectory_period,
+)
+from drivegain.identify.procedure import (
+    GivenGains,
+    Options,
+    Problem,
+    ProcedureResult,
+    run_procedure,
+)
+from drivegain.identify.report import FORM_MARGIN, RunInfo, markdown_report, report_json
+from drivegain.identify.signal import FilterSettings, default_filter
+
+#: Largest share of missing SYNC cycles that is filled by interpolation (more is an error).
+MAX_MISSING_FRACTION = 0.01
+#: Longest gap of missing cycles that is filled by interpolation.
+MAX_GAP_CYCLES = 10
+
+GAINS_KEYWORDS = ("apriori", "gear-ratios")
+
+
+# --------------------------------------------------------------------------------------------
+# Inputs
+
+
+@dataclass(frozen=True)
+class IdentifyRequest:
+    """What to identify (the options of ``drivegain identify``, contracts §1).
+
+    ``gains``: None identifies them when a loaded run is given (else uses the robot's a priori
+    gains); ``"apriori"``, ``"gear-ratios"`` or a file (TOML ``values``/``std``, or a
+    ``report.json``) fixes them and skips IDIM-WTLS.
+    """
+
+    robot: Path
+    unloaded: Path
+    out: Path
+    loaded: Path | None = None
+    payload: Path | None = None
+    gains: str | None = None
+    validate: Path | None = None
+    validate_payload: Path | None = None
+    friction: str | None = None
+    alpha: float | None = None
+    cutoff: float | None = None
+    decimate: int | None = None
+    reference: Path | None = None
+    progress: bool = True
+
+
+def load_gains(spec: str, robot: Robot) -> GivenGains:
+    """Gains given with ``--gains``.
+
+    Raises
+    ------
+    InputError
+        Unknown keyword, unreadable file, wrong count, zero or non-finite values.
+    """
+    if spec == "apriori":
+        return GivenGains(robot.apriori_gains, None, "apriori")
+    if spec == "gear-ratios":
+        return GivenGains(robot.gear_ratios, None, "gear ratios")
+    path = Path(spec)
+    if not path.exists():
+        raise InputError(
+            f"expected {' or '.join(GAINS_KEYWORDS)}, a TOML file or a report.json; "
+            f"no such file {spec!r}",
+            key="--gains",
+        )
+    if path.suffix.lower() == ".json":
+        values, std = _gains_from_report(path, robot.n)
+    else:
+        t = Table(read_toml(path), path)
+        t.reject_unknown({"values", "std"})
+        values = t.get_floats("values", length=robot.n)
+        std = t.get_floats("std", length=robot.n) if t.has("std") else None
+        if np.any(values == 0.0):
+            raise t.error("values", "gains must be non-zero")
+        if std is not None and np.any(std < 0.0):
+            raise t.error("std", "standard deviations must be >= 0")
+    return GivenGains(values, std, str(path))
+
+
+def _gains_from_report(path: Path, n: int) -> tuple[np.ndarray, np.ndarray | None]:
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise DataError(f"not a readable JSON report ({exc})", file=path) from None
+    gains = doc.get("gains") if isinstance(doc, dict) else None
+    if not isinstance(gains, list) or len(gains) != n:
+        count = len(gains) if isinstance(gains, list) else 0
+        raise DataError(f"expected {n} gains, found {count}", file=path, key="gains")
+    values, stds = [], []
+    for i, g in enumerate(gains):
+        v = g.get("value") if isinstance(g, dict) else None
+        if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v == 0:
+            raise DataError(f"not a non-zero number: {v!r}", file=path, key=f"gains[{i}].value")
+        values.append(float(v))
+        s = g.get("std")
+        stds.append(float(s) if isinstance(s, int | float) and not isinstance(s, bool) else None)
+    std = None if any(s is None for s in stds) else np.array(stds, dtype=float)
+    return np.array(values), std
+
+
+@dataclass
+class LoadedRun:
+    """A run read from its log and made uniform in time (only what identification uses)."""
+
+    label: str
+    path: Path
+    meta: dict[str, str]
+    attachments: dict[str, bytes]
+    t0: float
+    q: np.ndarray
+    current: np.ndarray
+    rate_hz: float
+    payload: Payload | None
+    notes: list[str] = field(default_factory=list)
+
+
+def _uniform(log: RunLog, path: Path) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """Positions and currents on every SYNC cycle, filling short gaps by interpolation."""
+    missing = log.missing_cycles()
+    if missing == 0:
+        return log.position, log.current_reference, []
+    cycles = log.cycle - log.cycle[0]
+    total = int(cycles[-1]) + 1
+    gap = int(np.max(np.diff(cycles))) - 1
+    if missing > MAX_MISSING_FRACTION * total or gap > MAX_GAP_CYCLES:
+        raise DataError(
+            f"{missing} of {total} SYNC cycles are missing (longest gap {gap}): too many to "
+            "interpolate",
+            file=path,
+        )
+    grid = np.arange(total)
+    q = np.column_stack([np.interp(grid, cycles, c) for c in log.position.T])
+    v = np.column_stack([np.interp(grid, cycles, c) for c in log.current_reference.T])
+    return q, v, [f"{missing} missing SYNC cycles filled by linear interpolation"]
+
+
+def load_run(path: Path, robot: Robot, label: str, payload: Payload | None) -> LoadedRun:
+    """Read one run log for ``robot``.
+
+    Raises
+    ------
+    DataError
+        Unreadable log, wrong joint count, NaN, non-monotonic time, large gaps.
+    """
+    log = read_run(path, robot.n)
+    q, v, notes = _uniform(log, path)
+    if log.truncated:
+        notes.append(f"truncated log: {log.messages_recovered} messages recovered")
+    if log.meta.get("robot") not in (None, robot.name):
+        notes.append(f"recorded on robot {log.meta.get('robot')!r}, identified as {robot.name!r}")
+    logged_payload = log.meta.get("payload", "none")
+    if payload is None and logged_payload not in ("none", ""):
+        notes.append(f"the log names payload {logged_payload!r} but the run is used unloaded")
+    if payload is not None and logged_payload not in (payload.name, "none", ""):
+        notes.append(f"the log names payload {logged_payload!r}, the payload file {payload.name!r}")
+    unit = log.meta.get("current_unit")
+    if unit:
+        notes.append(f"current references in {unit}")
+    # The log's other arrays (measured currents, set-points, cycles) are not kept: for long
+    # runs they are most of the memory.
+    return LoadedRun(
+        label=label,
+        path=path,
+        meta=dict(log.meta),
+        attachments=dict(log.attachments),
+        t0=float(log.t[0]),
+        q=q,
+        current=v,
+        rate_hz=log.rate_hz,
+        payload=payload,
+        notes=notes,
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# Progress display
+
+
+class _Display:
+    """A rich progress display on stderr, shown only on a terminal."""
+
+    def __init__(self, enabled: bool):
+        from rich.console import Console
+        from rich.progress import (
+            BarColumn,
+            Progress,
+            SpinnerColumn,
+            TaskProgressColumn,
+            TextColumn,
+            TimeElapsedColumn,
+        )
+
+        console = Console(stderr=True)
+        self.progress = Progress(
+            SpinnerColumn(),
+            TextColumn("{task.description}"),
+            BarColumn(),
+            TaskProgressColumn(),
+            TimeElapsedColumn(),
+            console=console,
+            transient=True,
+            disable=not (enabled and console.is_terminal),
+        )
+
+    def __enter__(self) -> _Display:
+        self.progress.__enter__()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.progress.__exit__(None, None, None)
+
+
+# --------------------------------------------------------------------------------------------
+# The command
+
+
+@dataclass(frozen=True)
+class IdentifyOutcome:
+    """What :func:`run_identify` produced."""
+
+    result: ProcedureResult
+    report: dict[str, Any]
+    out: Path
+    files: list[str]
+    robot: Robot
+
+
+def _check_request(req: IdentifyRequest) -> None:
+    if req.loaded is not None and req.payload is None:
+        raise InputError("a loaded run needs its payload file", key="--payload")
+    if req.payload is not None and req.loaded is None:
+        raise InputError("a payload file needs the loaded run it was fixed to", key="--loaded")
+    if req.validate is not None and req.validate_payload is None:
+        raise InputError("the validation run needs its payload file", key="--validate-payload")
+    if req.validate_payload is not None and req.validate is None:
+        raise InputError("a validation payload needs its run", key="--validate")
+    if req.alpha is not None and not (math.isfinite(req.alpha) and req.alpha > 0):
+        raise InputError(f"must be a positive number, got {req.alpha}", key="--alpha")
+    if req.cutoff is not None and not (math.isfinite(req.cutoff) and req.cutoff > 0):
+        raise InputError(f"must be a positive number of Hz, got {req.cutoff}", key="--cutoff")
+    if req.decimate is not None and req.decimate < 1:
+        raise InputError(f"must be an integer >= 1, got {req.decimate}", key="--decimate")
+    if req.out.exists() and not req.out.is_dir():
+        raise InputError("exists and is not a folder", file=req.out, key="--out")
+
+
+def _filter_for(run: LoadedRun, req: IdentifyRequest) -> FilterSettings:
+    bandwidth = trajectory_bandwidth(run.attachments)
+    try:
+        return default_filter(run.rate_hz, bandwidth, cutoff_hz=req.cutoff, decimate=req.decimate)
+    except InputError as exc:
+        raise InputError(f"run {run.label} ({run.path}): {exc}") from None
+
+
+def _run_info(run: LoadedRun, prepared: PreparedRun) -> RunInfo:
+    st = prepared.filter
+    return RunInfo(
+        label=run.label,
+        source=str(run.path),
+        raw_samples=prepared.raw_samples,
+        samples=prepared.samples,
+        rate_hz=run.rate_hz,
+        decimated_rate_hz=prepared.rate_hz,
+        payload=run.payload.name if run.payload is not None else "none",
+        filter=None
+        if st is None
+        else {
+            "cutoff_hz": st.cutoff_hz,
+            "order": st.order,
+            "decimate": st.decimate,
+            "trim": st.trim,
+        },
+        notes=list(run.notes)
+        + (
+            [
+                f"{prepared.rest_samples} samples with the robot at rest left out (and the "
+                "decimated samples whose filter window reaches them)"
+            ]
+            if prepared.rest_samples
+            else []
+        ),
+    )
+
+
+def _load_and_prepare(
+    model: RobotModel,
+    specs: Sequence[tuple[Path, str, Payload | None]],
+    req: IdentifyRequest,
+    display: _Display,
+) -> tuple[dict[WristFriction, Any], list[PreparedRun], list[RunInfo], list[dict[str, str]]]:
+    """Read and prepare the runs one after the other (a run's raw samples are dropped before
+    the next is read: for long recordings they dominate memory)."""
+    bases = bases_for_forms(model)
+    links = [pay.link for _, _, pay in specs if pay is not None]
+    columns = stored_columns(model.robot, bases, links)
+    prepared, infos, metas = [], [], []
+    for path, label, pay in specs:
+        task = display.progress.add_task(f"reading {label} run", total=None)
+        run = load_run(path, model.robot, label, pay)
+        settings = _filter_for(run, req)
+        display.progress.update(
+            task, description=f"{label}: filters, regressor, decimation", total=run.q.shape[0]
+        )
+        p = prepare_recording(
+            model,
+            columns,
+            label=run.label,
+            q=run.q,
+            current=run.current,
+            rate_hz=run.rate_hz,
+            settings=settings,
+            payload=run.payload,
+            source=str(run.path),
+            t0=run.t0,
+            progress=lambda k, task=task: display.progress.advance(task, k),
+            period_s=trajectory_period(run.attachments),
+        )
+        prepared.append(p)
+        infos.append(_run_info(run, p))
+        metas.append(run.meta)
+        display.progress.remove_task(task)
+        del run
+    return bases, prepared, infos, metas
+
+
+@contextmanager
+def _staging(out: Path) -> Iterator[Path]:
+    """A temporary folder beside ``out``, moved into ``out`` on success, removed on failure."""
+    parent = out.resolve().parent
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"cannot create the output folder's parent: {exc}", file=out) from None
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=parent))
+    try:
+        yield tmp
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    if not out.exists():
+        os.replace(tmp, out)
+        return
+    # An existing folder (maybe with the user's own files): replace our files one by one,
+    # each replacement atomic.
+    for item in sorted(tmp.iterdir()):
+        os.replace(item, out / item.name)
+    shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _reference_section(
+    path: Path, result: ProcedureResult, bases: dict[WristFriction, Any]
+) -> tuple[list[dict[str, Any]], str]:
+    from drivegain.identify.reference import match_reference, read_reference, relative_difference
+
+    refs = read_reference(path)
+    bp = bases[result.friction]
+    idx = match_reference(bp, refs)
+    final = result.final
+    rows: list[dict[str, Any]] = []
+    md = [
+        "",
+        f"## Published values (`{path.name}`)",
+        "",
+        "Matched by regrouping expression; a comparison, not a truth.",
+        "",
+        "| parameter | ours | 2σ | published | %σ published | ours vs published % |",
+        "|---|---|---|---|---|---|",
+    ]
+    for ref, i in zip(refs, idx, strict=True):
+        if i is None:
+            continue
+        theirs = ref.values[-1]
+        ours, std = float(final.base[i]), float(final.base_std[i])
+        diff = relative_difference(ours, theirs)
+        rsd = ref.rel_std_percent[-1]
+        rows.append(
+            {
+                "name": final.base_names[i],
+                "ours": ours,
+                "std": std,
+                "published": theirs,
+                "published_rel_std_percent": rsd,
+                "difference_percent": 100 * diff if math.isfinite(diff) else None,
+            }
+        )
+        md.append(
+            f"| {final.base_names[i]} | {ours:.4g} | {2 * std:.3g} | {theirs:.4g} | "
+            f"{'–' if rsd is None else f'{rsd:.3g}'} | {100 * diff:+.1f} |"
+        )
+    md.append(f"\n{len(rows)} of {len(refs)} published parameters matched ours.")
+    return rows, "\n".join(md) + "\n"
+
+
+def run_identify(req: IdentifyRequest) -> IdentifyOutcome:
+    """Identify from the request's logs and write the reports into ``req.out``.
+
+    OpenBLAS runs single-threaded meanwhile (see :mod:`.blas`: its threads make the many small
+    factorisations 10-25 times slower on busy cores).
+
+    Raises
+    ------
+    InputError
+        Bad options or files (nothing is written).
+    IdentificationError
+        The data cannot determine the unknowns (nothing is written).
+    """
+    with limited_blas_threads(1):
+        return _run_identify(req)
+
+
+def _run_identify(req: IdentifyRequest) -> IdentifyOutcome:
+    _check_request(req)
+    robot = load_robot(req.robot)
+    form = WristFriction(req.friction) if req.friction else robot.wrist_friction
+    payload = load_payload(req.payload, robot.n) if req.payload is not None else None
+    vpayload = (
+        load_payload(req.validate_payload, robot.n) if req.validate_payload is not None else None
+    )
+    given = load_gains(req.gains, robot) if req.gains is not None else None
+    if req.reference is not None and not req.reference.is_file():
+        raise InputError("file not found", file=req.reference, key="--reference")
+    model = build_model(robot)
+    with _Display(req.progress) as display:
+        specs: list[tuple[Path, str, Payload | None]] = [(req.unloaded, "unloaded", None)]
+        if req.loaded is not None:
+            specs.append((req.loaded, "loaded", payload))
+        if req.validate is not None:
+            specs.append((req.validate, "validation", vpayload))
+        bases, prepared, infos, metas = _load_and_prepare(model, specs, req, display)
+        if given is None and req.loaded is None and metas[0].get("gains_hint") == "gear_ratio":
+            given = GivenGains(robot.gear_ratios, None, "gear ratios (log's gains_hint)")
+        by_label = {p.label: p for p in prepared}
+        problem = Problem(
+            robot=robot,
+            bases=bases,
+            unloaded=by_label["unloaded"],
+            loaded=by_label.get("loaded"),
+            validation=by_label.get("validation"),
+        )
+        task = display.progress.add_task("identification", total=None)
+        options = Options(friction=form, gains=given, alpha=req.alpha)
+        result = run_procedure(
+            problem, options, step=lambda s: display.progress.update(task, description=s)
+        )
+        display.progress.update(task, description="reports and plots")
+        expressions = {
+            name: expr
+            for name, expr in zip(bases[form].names, bases[form].expressions, strict=True)
+        }
+        doc = report_json(result, robot, infos, expressions)
+        with _staging(req.out) as tmp:
+            from drivegain.identify.plots import write_plots
+
+            plots = write_plots(result, robot.joint_names, tmp)
+            md = markdown_report(doc, result, robot, infos, plots)
+            if req.reference is not None:
+                rows, section = _reference_section(req.reference, result, bases)
+                doc["reference"] = {"file": str(req.reference), "parameters": rows}
+                md += section
+            (tmp / "report.json").write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
+            (tmp / "report.md").write_text(md, encoding="utf-8")
+            files = sorted(p.name for p in tmp.iterdir())
+        display.progress.remove_task(task)
+    return IdentifyOutcome(result=result, report=doc, out=req.out, files=files, robot=robot)
+
+
+def _summary(outcome: IdentifyOutcome, robot_names: list[str]) -> str:
+    res = outcome.result
+    doc = outcome.report
+    m = doc["method"]
+    lines = [
+        f"identify: {m['estimator']}"
+        + (f" (α = {m['alpha']:.3g})" if m["alpha"] is not None else "")
+        + f", friction form {m['friction']}, {m['samples']} samples, gains: {res.gains_source}"
+    ]
+    lines.append(f"{'joint':<6}{'a priori':>10}{'gain':>10}{'2σ':>9}{'%σ':>7}")
+    for j, name in enumerate(robot_names):
+        std = "" if res.gains_std is None else f"{2 * res.gains_std[j]:9.3g}"
+        rsd = "" if res.gains_std is None else f"{100 * res.gains_std[j] / abs(res.gains[j]):7.2f}"
+        lines.append(f"{name:<6}{res.apriori[j]:10.4g}{res.gains[j]:10.4g}{std}{rsd}")
+    fin = res.final
+    if fin.payloads:
+        p = fin.payloads[0]
+        lines.append(
+            f"payload {p.name}: mass {p.values[9]:.4g} ± {2 * p.std[9]:.2g} kg (2σ, "
+            f"nominal {p.nominal[9]:.4g})"
+        )
+    lines.append(
+        f"relative error norm {fin.relative_error:.4g} ({fin.name}), held-out "
+        f"{res.cv.relative_error:.4g}; R² per joint " + " ".join(f"{v:.3f}" for v in fin.r2)
+    )
+    better, margin = res.better_form(), res.form_margin()
+    if better is not None and margin is not None:
+        lines.append(
+            f"coupled-wrist friction form fitting held-out data better: {better.value} "
+            f"(by {100 * margin:.2g} %{'' if margin >= FORM_MARGIN else ', not meaningful'})"
+        )
+    lines.append(f"wrote {outcome.out}/report.json, report.md and plots")
+    return "\n".join(lines)
+
+
+def identify_command(args: argparse.Namespace) -> int:
+    """Handler of ``drivegain identify`` (options in :mod:`drivegain.cli`)."""
+    req = IdentifyRequest(
+        robot=args.robot,
+        unloaded=args.unloaded,
+        out=args.out,
+        loaded=args.loaded,
+        payload=args.payload,
+        gains=args.gains,
+        validate=args.validate,
+        validate_payload=args.validate_payload,
+        friction=args.friction,
+        alpha=args.alpha,
+        cutoff=args.cutoff,
+        decimate=args.decimate,
+        reference=getattr(args, "reference", None),
+        progress=True,
+    )
+    outcome = run_identify(req)
+    print(_summary(outcome, outcome.robot.joint_names))
+    for w in outcome.result.warnings:
+        print(f"drivegain: warning: {w}", file=sys.stderr)
+    return 0

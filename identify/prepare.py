@@ -1,0 +1,565 @@
+"""From sampled runs to the decimated observation data the estimators use (paper §2.2).
+
+For each run: filtered positions, velocities and accelerations (zero-phase Butterworth + central
+differences, :mod:`drivegain.identify.signal`), the IDIM regressor at the full rate, then the
+parallel decimation of the regressor columns and the current references with the same filter,
+border trimming. Only the regressor columns some estimator needs are kept: the base columns of
+both coupled-wrist friction forms and the inertial columns of the payload's link.
+
+The full-rate regressor is built and decimated in chunks of samples that overlap by more than
+the decimation filter's memory, so memory stays bounded by the decimated data (linear in the
+recording's length, with a small constant) whatever the recording's length.
+"""
+
+from __future__ import annotations
+
+import functools
+import itertools
+import json
+import math
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from drivegain.config.payload import Payload
+from drivegain.config.robot import Robot, WristFriction
+from drivegain.errors import DataError
+from drivegain.identify.base import BaseParameters, base_parameters, random_states
+from drivegain.identify.model import RobotModel, build_model
+from drivegain.identify.params import N_INERTIAL, N_PER_JOINT, standard_names
+from drivegain.identify.regressor import stack_joint_major, standard_regressor
+from drivegain.identify.signal import FilterSettings, derivatives, parallel_decimate
+
+#: Full-rate samples per regressor evaluation and least decimation chunk: the (chunk, n, 86)
+#: temporary is ~17 MB for n = 6.
+CHUNK = 4096
+
+#: Called with the number of full-rate samples just processed (progress display).
+Progress = Callable[[int], None]
+
+
+def column_key(name: str, form: WristFriction) -> str:
+    """Key of a standard regressor column under a coupled-wrist friction form.
+
+    Only the Coulomb columns of coupled motors (``fcmM``) differ between the forms; the stored
+    regressor is that of the physical form, other forms' versions get a suffix, e.g.
+    ``fcm6@paper``.
+    """
+    if form is not WristFriction.PHYSICAL and name.startswith("fcm"):
+        return f"{name}@{form.value}"
+    return name
+
+
+def coupled_coulomb_columns(robot: Robot, qd: np.ndarray, form: WristFriction) -> np.ndarray:
+    """Columns (N, n, couplings) of the coupled-motor Coulomb parameters under ``form``.
+
+    Must equal the ``fcmM`` columns of :func:`standard_regressor` for that form (tested), so the
+    regressor is computed once for both forms.
+    """
+    qd = np.atleast_2d(qd)
+    out = np.zeros((qd.shape[0], robot.n, len(robot.couplings)))
+    for k, c in enumerate(robot.couplings):
+        s_sum = np.sign(qd[:, c.joint] + qd[:, c.motor])
+        if form is WristFriction.PHYSICAL:
+            out[:, c.joint, k] = s_sum
+            out[:, c.motor, k] = s_sum
+        else:
+            s_m = np.sign(qd[:, c.motor])
+            out[:, c.joint, k] = s_m
+            out[:, c.motor, k] = s_sum - s_m
+    return out
+
+
+def _valid_for(bp: BaseParameters, model: RobotModel, form: WristFriction, seed: int) -> bool:
+    """Whether ``bp`` is a base parameter set of ``model`` under friction form ``form``.
+
+    It is when its columns reproduce the torques of random parameter vectors (the regrouping
+    holds) and have full column rank (nothing is left over).
+    """
+    rng = np.random.default_rng(seed + 104729)
+    w = stack_joint_major(standard_regressor(model, *random_states(model, 200, rng), form))
+    chi = rng.standard_normal((w.shape[1], 4))
+    full = w @ chi
+    tol = 1e-9 * float(np.abs(full).max())
+    if np.abs(w[:, bp.base_index] @ bp.regroup(chi.T).T - full).max() > tol:
+        return False
+    wb = w[:, bp.base_index]
+    r = np.linalg.qr(wb / np.linalg.norm(wb, axis=0), mode="r")
+    d = np.abs(np.diag(r))
+    return bool(d.min() > 1e-8 * d.max())
+
+
+def bases_for_forms(model: RobotModel, *, seed: int = 0) -> dict[WristFriction, BaseParameters]:
+    """Base parameters of ``model`` under every coupled-wrist friction form.
+
+    The set found for the robot's own form is reused for another form when it is valid there
+    too (only the coupled Coulomb column changes), which halves the cost.
+    """
+    own = model.robot.wrist_friction
+    first = base_parameters(model, seed=seed)
+    out = {own: first}
+    for form in WristFriction:
+        if form is own:
+            continue
+        if _valid_for(first, model, form, seed):
+            out[form] = first
+        else:
+            other = build_model(replace(model.robot, wrist_friction=form))
+            out[form] = base_parameters(other, seed=seed)
+    return out
+
+
+def base_keys(bp: BaseParameters, form: WristFriction) -> list[str]:
+    """Column keys of the base parameters of ``bp`` (computed for ``form``)."""
+    return [column_key(bp.standard_names[k], form) for k in bp.base_index]
+
+
+def payload_keys(robot: Robot, link: int) -> list[str]:
+    """Column keys of the 10 inertial parameters of ``link`` (1-based), payload order."""
+    names = standard_names(robot)
+    start = N_PER_JOINT * (link - 1)
+    return names[start : start + N_INERTIAL]
+
+
+def stored_columns(
+    robot: Robot, bases: Mapping[WristFriction, BaseParameters], payload_links: Iterable[int]
+) -> tuple[str, ...]:
+    """The regressor columns to keep: base columns of every form and payload-link columns."""
+    names = standard_names(robot)
+    keep: set[str] = set()
+    for form, bp in bases.items():
+        keep.update(base_keys(bp, form))
+    for link in payload_links:
+        keep.update(payload_keys(robot, link))
+    ordered = [nm for nm in names if nm in keep]
+    extra = sorted(k for k in keep if k not in names)
+    return (*ordered, *extra)
+
+
+def _sources(robot: Robot, columns: Sequence[str]) -> tuple[np.ndarray, list[tuple[int, str, int]]]:
+    """Where each stored column comes from: standard indices (−1 for another form's column)
+    and, for those, (position, form, coupling index)."""
+    names = standard_names(robot)
+    fcm_names = [f"fcm{c.motor + 1}" for c in robot.couplings]
+    std = np.full(len(columns), -1, dtype=int)
+    alt = []
+    for i, key in enumerate(columns):
+        name, _, form = key.partition("@")
+        if form:
+            alt.append((i, form, fcm_names.index(name)))
+        else:
+            std[i] = names.index(name)
+    return std, alt
+
+
+def regressor_columns(
+    model: RobotModel,
+    q: np.ndarray,
+    qd: np.ndarray,
+    qdd: np.ndarray,
+    columns: Sequence[str],
+    series: tuple[np.ndarray, np.ndarray] | None = None,
+) -> np.ndarray:
+    """The regressor restricted to ``columns`` (keys of :func:`stored_columns`).
+
+    Returns (N, n, c); or, with ``series = (rows, cols)`` index arrays, only those entries,
+    (N, len(rows)).
+    """
+    robot = model.robot
+    std, alt = _sources(robot, columns)
+    w = standard_regressor(model, q, qd, qdd, WristFriction.PHYSICAL)
+    src = np.where(std >= 0, std, 0)
+    if series is None:
+        out = w[:, :, src]
+        cache: dict[str, np.ndarray] = {}
+        for i, form, k in alt:
+            if form not in cache:
+                cache[form] = coupled_coulomb_columns(robot, qd, WristFriction(form))
+            out[:, :, i] = cache[form][:, :, k]
+        return np.asarray(out)
+    rows, cols = series
+    out = w[:, rows, src[cols]]
+    for i, form, k in alt:
+        sel = np.flatnonzero(cols == i)
+        if sel.size:
+            extra = coupled_coulomb_columns(robot, qd, WristFriction(form))
+            out[:, sel] = extra[:, rows[sel], k]
+    return np.asarray(out)
+
+
+@dataclass(frozen=True)
+class PreparedRun:
+    """One run reduced to what the estimators need (decimated, borders trimmed).
+
+    Attributes
+    ----------
+    label
+        Run label (``unloaded``, ``loaded``, ``validation`` or the log's own).
+    t
+        Time of each kept sample, s, (N,).
+    regressor
+        Regressor columns, (N, n, c), joint torque (N·m) per parameter unit.
+    columns
+        Keys of the regressor columns (standard names; ``fcm6@paper`` for the other form).
+    current
+        Current references, A (or the log's unit), (N, n).
+    rate_hz
+        Sample rate of the kept samples, Hz.
+    payload
+        Payload fixed to the robot during the run, or None.
+    filter
+        Filter settings used (None: exact derivatives were given).
+    source
+        Where the data came from (file name), for messages.
+    raw_samples
+        Samples of the recording before filtering and decimation.
+    period_s
+        Period of the excitation when it is periodic (errors that depend on the pose repeat
+        with it), else None.
+    rest_samples
+        Samples of the recording where the robot was at rest (:func:`at_rest`); decimated
+        samples near them are not kept, so ``t`` may have gaps.
+    """
+
+    label: str
+    t: np.ndarray
+    regressor: np.ndarray
+    columns: tuple[str, ...]
+    current: np.ndarray
+    rate_hz: float
+    payload: Payload | None
+    filter: FilterSettings | None
+    source: str
+    raw_samples: int
+    period_s: float | None = None
+    rest_samples: int = 0
+
+    @property
+    def samples(self) -> int:
+        return int(self.t.shape[0])
+
+    def column_index(self, keys: Sequence[str]) -> np.ndarray:
+        """Positions of ``keys`` in :attr:`regressor`'s last axis."""
+        pos = {k: i for i, k in enumerate(self.columns)}
+        return np.array([pos[k] for k in keys], dtype=int)
+
+    def rows(self, sl: slice) -> PreparedRun:
+        """The same run restricted to the samples ``sl`` (views, no copy)."""
+        return PreparedRun(
+            label=self.label,
+            t=self.t[sl],
+            regressor=self.regressor[sl],
+            columns=self.columns,
+            current=self.current[sl],
+            rate_hz=self.rate_hz,
+            payload=self.payload,
+            filter=self.filter,
+            source=self.source,
+            raw_samples=self.raw_samples,
+            period_s=self.period_s,
+            rest_samples=self.rest_samples,
+        )
+
+
+def prepare_exact(
+    model: RobotModel,
+    columns: Sequence[str],
+    *,
+    label: str,
+    t: np.ndarray,
+    q: np.ndarray,
+    qd: np.ndarray,
+    qdd: np.ndarray,
+    current: np.ndarray,
+    payload: Payload | None = None,
+    source: str = "",
+    period_s: float | None = None,
+) -> PreparedRun:
+    """A run whose velocities and accelerations are known exactly: no filter, no decimation."""
+    t = np.asarray(t, dtype=float)
+    w = np.concatenate(
+        [
+            regressor_columns(
+                model, q[s : s + CHUNK], qd[s : s + CHUNK], qdd[s : s + CHUNK], columns
+            )
+            for s in range(0, len(t), CHUNK)
+        ]
+    )
+    rate = 1.0 / float(np.median(np.diff(t))) if len(t) > 1 else 1.0
+    return PreparedRun(
+        label=label,
+        t=t,
+        regressor=w,
+        columns=tuple(columns),
+        current=np.asarray(current, dtype=float),
+        rate_hz=rate,
+        payload=payload,
+        filter=None,
+        source=source,
+        raw_samples=len(t),
+        period_s=period_s,
+    )
+
+
+def filtered_derivatives(
+    q: np.ndarray, rate_hz: float, settings: FilterSettings, *, source: str | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Positions low-passed by :func:`signal.derivatives`, then five-point central differences.
+
+    The three-point differences (q[k+1] − q[k−1])/2h and (q[k+1] − 2q[k] + q[k−1])/h² shrink a
+    harmonic of angular frequency ω by (ωh)²/6 and (ωh)²/12: 5e-5 on q̈ for 1 Hz sampled at
+    250 Hz. Small, but it is systematic, the same on every run, and was measured to bias the
+    IDIM-WTLS gains by about one standard deviation with two 60 s runs (the bias does not
+    shrink with more data, the standard deviation does). The five-point stencils leave
+    (ωh)⁴/30 and (ωh)⁴/90. The two samples at each end, where the stencils do not fit, repeat
+    their neighbours; they lie in the border that decimation trims.
+    """
+    qf, _, _ = derivatives(q, rate_hz, settings, source=source)
+    h = 1.0 / rate_hz
+    qd = np.empty_like(qf)
+    qdd = np.empty_like(qf)
+    qd[2:-2] = (qf[:-4] - 8.0 * qf[1:-3] + 8.0 * qf[3:-1] - qf[4:]) / (12.0 * h)
+    qdd[2:-2] = (-qf[:-4] + 16.0 * qf[1:-3] - 30.0 * qf[2:-2] + 16.0 * qf[3:-1] - qf[4:]) / (
+        12.0 * h * h
+    )
+    for d in (qd, qdd):
+        d[:2] = d[2]
+        d[-2:] = d[-3]
+    return qf, qd, qdd
+
+
+#: A joint slower than this fraction of its RMS speed counts as still (for :func:`at_rest`).
+REST_FRACTION = 0.01
+#: Decimated samples whose filter window holds more than this fraction of rest are dropped
+#: (measured on the real TX-40 recording, whose trajectory also stops for 15-20 ms every 0.6 s:
+#: 1e-3 keeps 42 % of the samples, relative residual 0.056; 1e-2 keeps 70 %, 0.060; no
+#: exclusion 0.114, with the Coulomb coefficients pulled 30-40 % low).
+REST_LEAK = 1e-2
+
+
+def at_rest(qd: np.ndarray) -> np.ndarray:
+    """Samples where every joint is (nearly) still: (N,) bool.
+
+    At rest the Coulomb terms sign(q̇) follow the noise of the filtered velocity and the
+    torque holds the robot anywhere within the static friction band: the IDIM does not apply.
+    Recordings usually begin and end at rest (the real TX-40 one: its last 1.5 s), and those
+    samples, left in, changed the fit with velocity round-off. While the robot moves, one
+    joint reversing is fine: its sign changes at a well-defined instant.
+    """
+    speed = np.abs(np.asarray(qd, dtype=float))
+    rms = np.sqrt(np.mean(speed**2, axis=0))
+    still = speed <= REST_FRACTION * np.where(rms > 0, rms, np.inf)
+    return np.asarray(np.all(still, axis=1))
+
+
+def _chunks(n: int, factor: int, size: int) -> list[tuple[int, int]]:
+    """Chunk boundaries on multiples of ``factor`` (so decimated samples line up)."""
+    size = max(factor, (size // factor) * factor)
+    count = max(1, math.ceil(n / size))
+    bounds = [min(n, round(i * n / count / factor) * factor) for i in range(count)] + [n]
+    return [(a, b) for a, b in itertools.pairwise(bounds) if b > a]
+
+
+@functools.cache
+def decimation_memory(factor: int, tol: float = 1e-11) -> int:
+    """Input samples over which :func:`parallel_decimate`'s filter remembers, to ``tol``.
+
+    Measured on the filter itself: the (zero-phase, symmetric) response to an impulse, out to
+    where it stays below ``tol`` of its peak. Chunks that overlap by this much give the same
+    decimated samples as the whole signal, to ``tol`` relative.
+    """
+    if factor == 1:
+        return 0
+    length = 1000 * factor
+    while True:
+        x = np.zeros((length, 1))
+        x[length // 2] = 1.0
+        (y,) = parallel_decimate([x], factor, 0)
+        h = np.abs(y[:, 0])
+        centre = int(np.argmax(h))
+        above = np.flatnonzero(h > tol * h[centre])
+        reach = int(max(centre - above[0], above[-1] - centre))
+        if reach < len(h) // 4:
+            return (reach + 2) * factor
+        length *= 4
+
+
+def _nonzero_series(model: RobotModel, columns: Sequence[str]) -> np.ndarray:
+    """(n, c) mask of the regressor entries that are not identically zero (joint rows do not
+    depend on the links before them), from random states."""
+    rng = np.random.default_rng(0)
+    q, qd, qdd = random_states(model, 20, rng)
+    w = regressor_columns(model, q, qd, qdd, columns)
+    return np.asarray(np.any(w != 0.0, axis=0))
+
+
+#: Regressor series decimated per call (bounds the filter's temporaries).
+_SERIES_BLOCK = 48
+
+
+def prepare_recording(
+    model: RobotModel,
+    columns: Sequence[str],
+    *,
+    label: str,
+    q: np.ndarray,
+    current: np.ndarray,
+    rate_hz: float,
+    settings: FilterSettings,
+    payload: Payload | None = None,
+    source: str = "",
+    t0: float = 0.0,
+    progress: Progress | None = None,
+    period_s: float | None = None,
+) -> PreparedRun:
+    """Filter, differentiate, build the regressor and decimate one recorded run.
+
+    The full-rate regressor exists only for a window of samples at a time: each chunk is
+    decimated with the samples around it that the decimation filter remembers
+    (:func:`decimation_memory`), which the next chunk reuses rather than recomputes, so the
+    result equals a whole-signal decimation and memory stays bounded by the decimated output.
+    Structurally zero regressor entries are not filtered.
+
+    Parameters
+    ----------
+    model
+        The robot model.
+    columns
+        Regressor columns to keep (:func:`stored_columns`).
+    label
+        Run label.
+    q
+        Measured joint positions, rad, (N, n), uniformly sampled.
+    current
+        Current references, (N, n).
+    rate_hz
+        Sample rate, Hz.
+    settings
+        Filter and decimation settings.
+    payload
+        Payload of this run, if any.
+    source
+        File name for error messages.
+    t0
+        Time of the first sample, s.
+    progress
+        Called with the number of samples processed.
+    period_s
+        Period of the excitation, if periodic.
+
+    Raises
+    ------
+    DataError
+        Too few samples for the filters, NaN/inf.
+    """
+    q = np.asarray(q, dtype=float)
+    current = np.asarray(current, dtype=float)
+    n_samples, n = q.shape
+    src = source or None
+    qf, qd, qdd = filtered_derivatives(q, rate_hz, settings, source=src)
+    f = settings.decimate
+    pad = decimation_memory(f)
+    size = max(CHUNK, 2 * pad)
+    parts = [(0, n_samples)] if n_samples <= size + 2 * pad else _chunks(n_samples, f, size)
+    live = _nonzero_series(model, columns)
+    rows, cols = np.nonzero(live)
+    # Decimate the currents once, whole: they are small. Same filter, so the same result.
+    # The rest indicator goes through the same filter: a kept sample's filter window holds
+    # (almost) no sample at rest.
+    rest = at_rest(qd)
+    (c_all, rest_d) = parallel_decimate([current, rest.astype(float)], f, 0, source=src)
+    nd = c_all.shape[0]
+    w_all = np.zeros((nd, n, len(columns)))
+    carry: np.ndarray | None = None  # regressor series of the previous window's tail
+    carry_lo = 0
+    for a, b in parts:
+        lo, hi = max(0, a - pad), min(n_samples, b + pad)
+        window = np.empty((hi - lo, rows.size))
+        start = lo
+        if carry is not None and carry_lo == lo:
+            window[: carry.shape[0]] = carry
+            start = lo + carry.shape[0]
+        for s in range(start, hi, CHUNK):
+            e = min(hi, s + CHUNK)
+            window[s - lo : e - lo] = regressor_columns(
+                model, qf[s:e], qd[s:e], qdd[s:e], columns, (rows, cols)
+            )
+        # Decimated sample k of this window is input sample lo + k·f (lo is a multiple of f).
+        first = (a - lo) // f
+        count = -(-(b - a) // f)
+        k0 = a // f
+        for g in range(0, rows.size, _SERIES_BLOCK):
+            sl = slice(g, g + _SERIES_BLOCK)
+            (wd,) = parallel_decimate([window[:, sl]], f, 0, source=src)
+            w_all[k0 : k0 + count, rows[sl], cols[sl]] = wd[first : first + count]
+        # The next window starts at b - pad: keep what this one computed from there on.
+        carry_lo = max(0, b - pad)
+        carry = window[carry_lo - lo :].copy() if b < n_samples else None
+        if progress is not None:
+            progress(b - a)
+    trim = settings.trim
+    if nd <= 2 * trim:
+        raise DataError(
+            f"too few samples: {n_samples} samples decimated by {f} leave {nd}, not more than "
+            f"the {2 * trim} border samples to trim",
+            file=src,
+        )
+    keep = np.arange(trim, nd - trim)
+    keep = keep[np.abs(rest_d[keep]) < REST_LEAK]
+    if keep.size < 2:
+        raise DataError("the robot is at rest during the whole recording", file=src)
+    return PreparedRun(
+        label=label,
+        t=t0 + keep * f / rate_hz,
+        regressor=w_all[keep],
+        columns=tuple(columns),
+        current=c_all[keep],
+        rate_hz=rate_hz / f,
+        payload=payload,
+        filter=settings,
+        source=source,
+        raw_samples=n_samples,
+        period_s=period_s,
+        rest_samples=int(rest.sum()),
+    )
+
+
+def _fourier(attachments: Mapping[str, bytes]) -> tuple[float, int] | None:
+    """(base frequency Hz, harmonics) of the excitation trajectory attached to a log, if any:
+    a JSON attachment with a ``fourier`` object (contracts §6)."""
+    for data in attachments.values():
+        try:
+            doc: Any = json.loads(data)
+        except (ValueError, UnicodeDecodeError):
+            continue
+        if not isinstance(doc, dict) or not isinstance(doc.get("fourier"), dict):
+            continue
+        fourier = doc["fourier"]
+        try:
+            f0 = float(fourier["base_frequency_hz"])
+            harmonics = max(len(row) for row in fourier["a"])
+        except (KeyError, TypeError, ValueError):
+            continue
+        if math.isfinite(f0) and f0 > 0 and harmonics > 0:
+            return f0, harmonics
+    return None
+
+
+def trajectory_bandwidth(attachments: Mapping[str, bytes]) -> float | None:
+    """Highest harmonic (Hz) of the excitation trajectory attached to a log, if any."""
+    info = _fourier(attachments)
+    return None if info is None else info[0] * info[1]
+
+
+def trajectory_period(attachments: Mapping[str, bytes]) -> float | None:
+    """Period (s) of the excitation trajectory attached to a log, if any."""
+    info = _fourier(attachments)
+    return None if info is None else 1.0 / info[0]
+
+
+def source_name(path: Path | str | None) -> str:
+    """File name used in messages."""
+    return "" if path is None else str(path)

@@ -1,0 +1,272 @@
+"""``drivegain identify`` end to end on simulated MCAP logs: reports, options, bad input."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from drivegain.cli import main
+from drivegain.config import resource_path
+from drivegain.identify.logformat import RunMetadata, write_run
+from drivegain.identify.synth import simulate_run
+
+RATE = 250.0
+ROBOT = resource_path("tx40.toml")
+PAYLOAD = resource_path("payloads/calibrated-4590g.toml")
+VALIDATION = resource_path("payloads/validation-1686g.toml")
+
+
+def _write_log(
+    world,
+    path: Path,
+    which: int,
+    payload,
+    seed: int,
+    *,
+    seconds: float = 30.0,
+    joints: int = 6,
+    nan_at: int | None = None,
+) -> Path:
+    t = np.arange(0.0, seconds, 1.0 / RATE)
+    q, qd, qdd = world.excitations[which].evaluate(t)
+    sim = simulate_run(
+        world.model,
+        world.truth,
+        q,
+        qd,
+        qdd,
+        payload=payload,
+        torque_noise=0.05,
+        quantum=float(np.deg2rad(1e-3)),
+        rng=np.random.default_rng(seed),
+    )
+    pos, cur = sim.q[:, :joints], sim.current_reference[:, :joints]
+    if nan_at is not None:
+        pos = pos.copy()
+        pos[nan_at, 0] = np.nan
+    trajectory = {"fourier": {"base_frequency_hz": 0.2, "a": [[0.0] * 5] * 6, "b": [[0.0] * 5] * 6}}
+    meta = RunMetadata(
+        robot=world.robot.name,
+        run="loaded" if payload is not None else "unloaded",
+        payload=payload.name if payload is not None else "none",
+        joint_names=world.robot.joint_names[:joints],
+        sync_period_s=1.0 / RATE,
+        started_at="2024-01-01T00:00:00.000Z",
+    )
+    att = [("trajectory.json", "application/json", json.dumps(trajectory).encode())]
+    return write_run(path, meta, t, pos, cur, attachments=att)
+
+
+@pytest.fixture(scope="module")
+def logs(world, tmp_path_factory) -> dict[str, Path]:
+    d = tmp_path_factory.mktemp("logs")
+    return {
+        "a": _write_log(world, d / "a.mcap", 0, None, 1),
+        "b": _write_log(world, d / "b.mcap", 1, world.payload, 2),
+        "c": _write_log(world, d / "c.mcap", 2, world.validation, 3),
+    }
+
+
+@pytest.fixture(scope="module")
+def full_report(logs, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("runs") / "report"
+    code = main(
+        [
+            "identify",
+            "--robot",
+            str(ROBOT),
+            "--unloaded",
+            str(logs["a"]),
+            "--loaded",
+            str(logs["b"]),
+            "--payload",
+            str(PAYLOAD),
+            "--validate",
+            str(logs["c"]),
+            "--validate-payload",
+            str(VALIDATION),
+            "--out",
+            str(out),
+        ]
+    )
+    assert code == 0
+    return out
+
+
+def _number(x) -> bool:
+    return isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def test_report_json_follows_contracts_5(full_report: Path, world) -> None:
+    doc = json.loads((full_report / "report.json").read_text())
+    assert doc["format_version"] == 1
+    assert [g["joint"] for g in doc["gains"]] == world.robot.joint_names
+    for g in doc["gains"]:
+        assert all(_number(g[k]) for k in ("value", "std", "rel_std_percent"))
+        assert g["rel_std_percent"] == pytest.approx(100 * g["std"] / abs(g["value"]))
+    gains = np.array([g["value"] for g in doc["gains"]])
+    assert np.all(np.abs(gains / world.truth.gains - 1) < 0.01)
+    assert set(doc["payload"]) >= {"mass", "MX", "MY", "MZ", "XX", "XY", "XZ", "YY", "YZ", "ZZ"}
+    assert all(
+        _number(doc["payload"][k]["value"]) and _number(doc["payload"][k]["std"])
+        for k in ("mass", "MX", "ZZ")
+    )
+    assert doc["payload"]["mass"]["value"] == pytest.approx(4.59, rel=0.01)
+    for b in doc["base_parameters"]:
+        assert isinstance(b["name"], str) and _number(b["value"]) and _number(b["std"])
+        assert b["rel_std_percent"] is None or _number(b["rel_std_percent"])
+    assert _number(doc["residual"]["norm"]) and 0 < doc["residual"]["relative"] < 0.01
+    m = doc["method"]
+    assert m["estimator"] == "IDIM-WTLS" and _number(m["alpha"]) and m["alpha"] > 0
+    assert isinstance(m["samples"], int) and m["samples"] > 1000
+    # Extras: both cases, the validation payload, the α curve, cross-validation.
+    assert set(doc["cases"]) == {"case1", "case2"}
+    assert doc["validation"]["case2"]["mass"]["value"] == pytest.approx(1.686, rel=0.02)
+    assert len(doc["wtls"]["alpha_curve"]) > 10
+    assert len(doc["cross_validation"]["joints"]) == 6
+
+
+def test_markdown_and_plots(full_report: Path) -> None:
+    md = (full_report / "report.md").read_text()
+    for title in ("Table 3", "Table 2", "Table 4", "Table 5", "friction forms"):
+        assert title in md
+    for png in ("torques.png", "residuals.png", "alpha.png", "singular_values.png"):
+        data = (full_report / png).read_bytes()
+        assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 10_000
+        assert f"]({png})" in md
+    assert not list(full_report.parent.glob(".report.*"))  # no staging folder left
+
+
+def test_gains_from_a_report_or_a_toml_skip_wtls(full_report, logs, tmp_path, capsys) -> None:
+    out = tmp_path / "again"
+    assert (
+        main(
+            [
+                "identify",
+                "--robot",
+                str(ROBOT),
+                "--unloaded",
+                str(logs["a"]),
+                "--loaded",
+                str(logs["b"]),
+                "--payload",
+                str(PAYLOAD),
+                "--gains",
+                str(full_report / "report.json"),
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
+    first = json.loads((full_report / "report.json").read_text())
+    doc = json.loads((out / "report.json").read_text())
+    assert doc["method"]["estimator"] == "IDIM-WLS"
+    assert [g["value"] for g in doc["gains"]] == [g["value"] for g in first["gains"]]
+    assert [g["std"] for g in doc["gains"]] == [g["std"] for g in first["gains"]]
+    toml = tmp_path / "gains.toml"
+    toml.write_text(
+        "values = [33.7, 32.2, 24.1, -8.8, 16.5, 6.82]\nstd = [0.1, 0.1, 0.1, 0.1, 0.1, 0.1]\n"
+    )
+    out2 = tmp_path / "toml"
+    assert (
+        main(
+            [
+                "identify",
+                "--robot",
+                str(ROBOT),
+                "--unloaded",
+                str(logs["a"]),
+                "--gains",
+                str(toml),
+                "--out",
+                str(out2),
+            ]
+        )
+        == 0
+    )
+    doc2 = json.loads((out2 / "report.json").read_text())
+    assert [g["value"] for g in doc2["gains"]] == [33.7, 32.2, 24.1, -8.8, 16.5, 6.82]
+    assert "payload" not in doc2
+    assert "IDIM-WLS" in capsys.readouterr().out
+
+
+def test_existing_out_folder_keeps_other_files(logs, tmp_path) -> None:
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    (out / "report.json").write_text("old")
+    assert (
+        main(["identify", "--robot", str(ROBOT), "--unloaded", str(logs["a"]), "--out", str(out)])
+        == 0
+    )
+    assert (out / "notes.txt").read_text() == "mine"
+    assert json.loads((out / "report.json").read_text())["format_version"] == 1
+
+
+def _bad_inputs(world, logs, tmp: Path) -> dict[str, list[str]]:
+    base = ["identify", "--robot", str(ROBOT), "--unloaded", str(logs["a"])]
+    text = tmp / "notes.mcap"
+    text.write_text("not a log\n")
+    short = _write_log(world, tmp / "short.mcap", 0, None, 5, seconds=0.4)
+    five = _write_log(world, tmp / "five.mcap", 0, None, 6, joints=5)
+    bad_gains = tmp / "gains.toml"
+    bad_gains.write_text("values = [1.0, 2.0]\n")
+    a_file = tmp / "file"
+    a_file.write_text("")
+    return {
+        "loaded without payload": [*base, "--loaded", str(logs["b"])],
+        "not an MCAP file": ["identify", "--robot", str(ROBOT), "--unloaded", str(text)],
+        "missing log": ["identify", "--robot", str(ROBOT), "--unloaded", str(tmp / "no.mcap")],
+        "wrong joint count": ["identify", "--robot", str(ROBOT), "--unloaded", str(five)],
+        "too few samples": ["identify", "--robot", str(ROBOT), "--unloaded", str(short)],
+        "gains of wrong length": [*base, "--gains", str(bad_gains)],
+        "unknown gains keyword": [*base, "--gains", "manufacturer"],
+        "negative alpha": [*base, "--alpha", "-1"],
+        "cut-off above Nyquist": [*base, "--cutoff", "500"],
+        "out is a file": [
+            "identify",
+            "--robot",
+            str(ROBOT),
+            "--unloaded",
+            str(logs["a"]),
+            "--out",
+            str(a_file),
+        ],
+        "bad payload file": [*base, "--loaded", str(logs["b"]), "--payload", str(bad_gains)],
+    }
+
+
+def test_bad_input_exits_2_with_one_line_and_writes_nothing(world, logs, tmp_path, capsys) -> None:
+    cases = _bad_inputs(world, logs, tmp_path)
+    for name, argv in cases.items():
+        out = tmp_path / f"out-{name.replace(' ', '-')}"
+        if "--out" not in argv:
+            argv = [*argv, "--out", str(out)]
+        code = main(argv)
+        err = capsys.readouterr().err.strip()
+        assert code == 2, f"{name}: exit {code}, stderr {err!r}"
+        assert err.startswith("drivegain: error:") and "\n" not in err, f"{name}: {err!r}"
+        assert not out.exists(), name
+    assert not list(tmp_path.glob(".out-*"))
+
+
+def test_failure_midway_leaves_nothing(logs, tmp_path, monkeypatch, capsys) -> None:
+    import drivegain.identify.plots as plots
+
+    def broken(*_a, **_k):
+        raise RuntimeError("disk full")
+
+    monkeypatch.setattr(plots, "write_plots", broken)
+    out = tmp_path / "out"
+    code = main(
+        ["identify", "--robot", str(ROBOT), "--unloaded", str(logs["a"]), "--out", str(out)]
+    )
+    assert code == 1
+    assert "disk full" in capsys.readouterr().err
+    assert not out.exists()
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".out")]
