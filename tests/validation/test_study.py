@@ -1,0 +1,96 @@
+"""A small version of the validation study (benchmarks/validate.py): 2 seeds per scenario.
+
+Checks what the study must show, against the simulation truth: our gains are accurate, the
+diagonal current matrix is wrong on the coupled wrist, least squares is biased when the current
+references are noisy, Case 2 payloads beat Case 1, and the document and figures are written.
+The coverage of the 2σ needs the full study (150 seeds); here its statistics' helpers are
+checked on known answers.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+import numpy as np
+import pytest
+
+from drivegain.identify.signal import FilterSettings
+
+
+@pytest.fixture(scope="module")
+def study(validate: ModuleType, tmp_path_factory: pytest.TempPathFactory) -> tuple[dict, Path]:
+    out = tmp_path_factory.mktemp("study")
+    data = validate.run_study(seeds=2, budget_s=600.0, out=out, real=None, progress=lambda _: None)
+    return data, out
+
+
+def test_files_written(study: tuple[dict, Path]) -> None:
+    _, out = study
+    doc = (out / "validation.md").read_text(encoding="utf-8")
+    for name in ("gain-errors", "coverage", "payload-errors", "fig3-torques", "alpha"):
+        png = out / "validation" / f"{name}.png"
+        assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+        assert f"validation/{name}.png" in doc
+    saved = json.loads((out / "validation" / "results.json").read_text(encoding="utf-8"))
+    assert saved["meta"]["seeds_run"] == 2
+    for title in ("Table 3", "Table 2", "Table 5", "Table 4", "Fig. 3", "Coverage of the reported"):
+        assert title in doc
+    assert "Skipped: no real recording given" in doc
+
+
+def test_our_gains_are_accurate_and_the_tables_hold_the_truth(study: tuple[dict, Path]) -> None:
+    data, _ = study
+    g = np.asarray(data["truth_gains"])
+    for key in ("torque-0.05", "torque-0.1"):
+        ours = data["monte_carlo"][key]["methods"]["wtls"]
+        assert ours["seeds"] == 2 and not ours["failures"]
+        assert ours["max_abs_pct"] < 0.2
+    tab = data["tables"]
+    np.testing.assert_allclose(tab["gains"], g, rtol=2e-3)
+    assert tab["table4"]["case2"]["relative"] < tab["table4"]["case1"]["relative"]
+
+
+def test_what_the_comparison_must_show(study: tuple[dict, Path]) -> None:
+    data, _ = study
+    mc = data["monte_carlo"]
+    # The coupled wrist ignored: g5 and g6 off by far more than any noise effect.
+    diag = mc["torque-0.05"]["methods"]["tls_diag"]
+    assert min(diag["rmse_pct"][4:]) > 10.0
+    # Noisy currents as LS regressors: every gain shrinks (errors-in-variables); TLS does not.
+    noisy = mc["current-1pct"]["methods"]
+    assert max(noisy["global_ls"]["bias_pct"]) < -0.5
+    assert max(abs(b) for b in noisy["wtls"]["bias_pct"]) < 0.5
+    # Case 2 payload closer to the truth than Case 1, every parameter, both payloads.
+    for key in mc:
+        cases = mc[key]["cases"]
+        for which in ("b", "c"):
+            c1 = np.asarray(cases["case1"][f"payload_{which}_rms_pct"])
+            c2 = np.asarray(cases["case2"][f"payload_{which}_rms_pct"])
+            assert np.all(c2 < c1), (key, which)
+
+
+def test_decimated_noise_is_band_limited(validate: ModuleType, world: Any) -> None:
+    """White noise stays white without decimation; the decimation's pass band (0.8 of the new
+    Nyquist frequency) makes its low-frequency density about 1/0.8 of the white equivalent."""
+    plain = replace(world, settings=FilterSettings(cutoff_hz=5.0, decimate=1, trim=10))
+    assert validate.decimated_noise_factor(plain) == pytest.approx(1.0, abs=0.06)
+    assert 1.12 < validate.decimated_noise_factor(world) < 1.32
+
+
+def test_statistics_helpers_on_known_answers(validate: ModuleType) -> None:
+    lo, hi = validate.wilson(0.5, 100)
+    assert lo == pytest.approx(0.4038, abs=1e-3) and hi == pytest.approx(0.5962, abs=1e-3)
+    ref = np.random.default_rng(0).standard_normal((30, 6))
+    ratio, lo, hi = validate.bootstrap_ratio(2 * ref, ref, np.random.default_rng(1))
+    assert ratio == pytest.approx(2.0) and lo == pytest.approx(2.0) and hi == pytest.approx(2.0)
+
+
+def test_bad_options_exit_2(validate: ModuleType) -> None:
+    for argv in (["--seeds", "1"], ["--budget", "-5"]):
+        with pytest.raises(SystemExit) as exc:
+            validate.main(argv)
+        assert exc.value.code == 2
