@@ -10,6 +10,7 @@ import dataclasses
 import logging
 from pathlib import Path
 from types import TracebackType
+from typing import Any
 
 import canopen
 
@@ -28,7 +29,7 @@ def simulation_for_run(sim: SimConfig, payload: Path | None, seed: int | None = 
     declares (to rehearse a wrong declaration); otherwise it carries the run's payload, as a real
     robot carries what the operator mounted.
     """
-    changes: dict[str, object] = {}
+    changes: dict[str, Any] = {}
     if sim.payload is None and payload is not None:
         changes["payload"] = payload
     if seed is not None:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from collections import Counter
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -79,7 +80,7 @@ class LoopStats:
     late_tpdo: Counter[int] = field(default_factory=Counter)
     missing_tpdo: Counter[int] = field(default_factory=Counter)
 
-    def summary(self) -> dict[str, str]:
+    def summary(self) -> dict[str, Any]:
         """The statistics as strings (for an ``/events`` message and the status reply)."""
 
         def us(h: Histogram, q: float) -> str:

@@ -243,7 +243,7 @@ class SimDrive:
         elif index == ob.SYNC_OVERFLOW:
             if ob.COMM_CYCLE_PERIOD in self.od and self.stored(ob.COMM_CYCLE_PERIOD) != 0:
                 raise SdoAbortedError(ABORT_DEVICE_STATE)
-            if value == 1 or value > ob.SYNC_COUNTER_OVERFLOW:
+            if not isinstance(value, int) or value == 1 or value > ob.SYNC_COUNTER_OVERFLOW:
                 raise SdoAbortedError(ABORT_VALUE_RANGE)
         elif index == ob.RATED_CURRENT:
             if value == 0:

@@ -9,6 +9,7 @@ complete: a failure leaves ``--out`` untouched.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import math
 import os
@@ -353,7 +354,7 @@ def _load_and_prepare(
             payload=run.payload,
             source=str(run.path),
             t0=run.t0,
-            progress=lambda k, task=task: display.progress.advance(task, k),
+            progress=functools.partial(display.progress.advance, task),
             period_s=trajectory_period(run.attachments),
         )
         prepared.append(p)

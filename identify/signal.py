@@ -17,6 +17,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from scipy import signal as sps
@@ -229,7 +230,7 @@ def default_filter(
     return FilterSettings(cutoff_hz=float(cutoff_hz), order=order, decimate=decimate, trim=trim)
 
 
-def _where(source: str | Path | None) -> dict[str, str | Path | None]:
+def _where(source: str | Path | None) -> dict[str, Any]:
     return {"file": source}
 
 
