@@ -14,11 +14,13 @@ TPDOs (collected per cycle and tagged by the SYNC counter echoed by the drives),
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import struct
 import threading
 import time
 from collections import deque
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -991,42 +993,31 @@ class Master:
         except Exception as exc:  # network.check() re-raises the reader thread's failure
             raise BusError(f"CAN bus failed: {exc}") from None
 
-    def _download(self, d: _Drive, index: int, subindex: int, fmt: str, value: int) -> None:
+    @contextlib.contextmanager
+    def _sdo_errors(self, d: _Drive, what: str) -> Iterator[None]:
+        """Map canopen/python-can SDO failures of ``what`` (e.g. "write 0x6060:00 = 8") to the
+        drivegain error tree, with the node id and the abort code."""
         try:
-            d.node.sdo.download(index, subindex, struct.pack("<" + fmt, value))
+            yield
         except SdoAbortedError as exc:
-            raise DriveError(
-                f"SDO write 0x{index:04X}:{subindex:02X} = {value} refused ({exc})",
-                node=d.node_id,
-                code=exc.code,
-            ) from None
+            raise DriveError(f"SDO {what} refused ({exc})", node=d.node_id, code=exc.code) from None
         except SdoCommunicationError as exc:
             raise DriveError(
-                f"no SDO answer writing 0x{index:04X}:{subindex:02X} ({exc})",
+                f"no SDO answer to {what} ({exc})",
                 node=d.node_id,
                 code=int(ob.EmcyCode.SDO_TIMEOUT),
             ) from None
         except (can.CanError, OSError) as exc:
-            raise BusError(f"SDO write to node {d.node_id} failed: {exc}") from None
+            raise BusError(f"SDO {what} on node {d.node_id} failed: {exc}") from None
+
+    def _download(self, d: _Drive, index: int, subindex: int, fmt: str, value: int) -> None:
+        with self._sdo_errors(d, f"write 0x{index:04X}:{subindex:02X} = {value}"):
+            d.node.sdo.download(index, subindex, struct.pack("<" + fmt, value))
 
     def _upload(self, d: _Drive, index: int, subindex: int, fmt: str) -> int:
         size = struct.calcsize("<" + fmt)
-        try:
+        with self._sdo_errors(d, f"read 0x{index:04X}:{subindex:02X}"):
             data = d.node.sdo.upload(index, subindex)
-        except SdoAbortedError as exc:
-            raise DriveError(
-                f"SDO read 0x{index:04X}:{subindex:02X} refused ({exc})",
-                node=d.node_id,
-                code=exc.code,
-            ) from None
-        except SdoCommunicationError as exc:
-            raise DriveError(
-                f"no SDO answer reading 0x{index:04X}:{subindex:02X} ({exc})",
-                node=d.node_id,
-                code=int(ob.EmcyCode.SDO_TIMEOUT),
-            ) from None
-        except (can.CanError, OSError) as exc:
-            raise BusError(f"SDO read from node {d.node_id} failed: {exc}") from None
         if len(data) < size:
             raise DriveError(
                 f"SDO read 0x{index:04X}:{subindex:02X} returned {len(data)} bytes, "
