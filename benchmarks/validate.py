@@ -1667,14 +1667,17 @@ def real_text(real: dict[str, Any] | None, skipped: str | None) -> str:
     )
     best = min(forms, key=lambda k: forms[k]["cv_relative"])
     other = [k for k in forms if k != best]
-    L.append(
-        f"The `{best}` form predicts the held-out data better"
-        + (
-            f" ({forms[best]['cv_relative']:.4f} against {forms[other[0]]['cv_relative']:.4f})."
-            if other
-            else "."
+    if other:
+        a_cv, b_cv = forms[best]["cv_relative"], forms[other[0]]["cv_relative"]
+        # Below 1 % relative the two forms cannot be told apart on this recording.
+        verdict = (
+            "predicts the held-out data better"
+            if b_cv > 1.01 * a_cv
+            else (f"and the `{other[0]}` form predict the held-out data equally well")
         )
-    )
+        L.append(f"The `{best}` form {verdict} ({a_cv:.5f} against {b_cv:.5f}).")
+    else:
+        L.append(f"Only the `{best}` form was fitted.")
     L.append("")
     by_form = {k: {r["name"]: r for r in fr["reference"]} for k, fr in forms.items()}
     names = [r["name"] for r in any_form["reference"] if r["name"].startswith(_REAL_PREFIXES)]
