@@ -29,8 +29,11 @@ test:
 	cd /tmp && $(CURDIR)/$(TEST_VENV)/bin/mypy --config-file $(CURDIR)/pyproject.toml -p drivegain
 	$(TEST_VENV)/bin/python -m pytest -q
 
+# Each benchmark is one command with its own options (--help); this runs them all with their
+# defaults, printing ratios to baselines measured in the same run.
 bench: $(VENV)/.installed
-	$(VENV)/bin/python benchmarks/run_all.py
+	for b in regressor identify excite bus acquire; do $(VENV)/bin/python benchmarks/bench_$$b.py || exit 1; done
+	$(VENV)/bin/python benchmarks/validate.py --quick --out /tmp/drivegain-validation
 
 clean:
 	rm -rf $(VENV) $(TEST_VENV) build *.egg-info drivegain-demo
