@@ -193,7 +193,6 @@ def excite(args: argparse.Namespace) -> int:
                 "starts": starts,
                 "completed_starts": len(result.starts),
                 "max_iter": max_iter,
-                "dropped_columns": list(result.dropped_columns),
             },
             "approach": {
                 "from": [float(x) for x in q_start],
@@ -270,11 +269,6 @@ def _summary(
     if "wtls_cond" in metrics:
         console.print(
             f"WTLS (unloaded + loaded, design data): s1/s(p-1) = {metrics['wtls_cond']:.3g}"
-        )
-    if result.dropped_columns:
-        console.print(
-            "left out of the criteria (identically zero columns): "
-            + ", ".join(result.dropped_columns)
         )
     console.print(
         f"motion: approach {_bounds(motion, 'approach'):.2f} s, excitation "

@@ -17,10 +17,6 @@ Column scaling (stated because a condition number depends on it):
   removes the V-column weight α). Noise-free, W_tot has a one-dimensional null space (the
   solution); the criterion is ``s_1 / s_(p-1)``, the condition number on the complement of that
   null space, i.e. it widens the gap between the two smallest singular values.
-
-A few base columns can be identically zero on every state (a numerical base set can keep one,
-such as ``MZ2`` of the TX-40 whose column is round-off): those are structurally unidentifiable
-and are left out of all criteria (``DesignModel.dropped``).
 """
 
 from __future__ import annotations
@@ -32,15 +28,12 @@ import numpy as np
 
 from drivegain.config.payload import Payload
 from drivegain.config.robot import Robot
-from drivegain.identify.base import BaseParameters, base_parameters, random_states
+from drivegain.identify.base import BaseParameters, base_parameters
 from drivegain.identify.model import RobotModel
 from drivegain.identify.params import inertial_slice, standard_names, with_payload
-from drivegain.identify.regressor import stack_joint_major, standard_regressor
+from drivegain.identify.regressor import stack_joint_major
 from drivegain.identify.transmission import current_matrix, currents_for_torque
 
-#: A base column is structurally zero when its norm over random states is below this fraction
-#: of the largest column norm.
-ZERO_COLUMN = 1e-10
 #: Smallest singular value used by the criteria, relative to the largest.
 SINGULAR_FLOOR = 1e-12
 
@@ -62,12 +55,6 @@ class DesignModel:
         The robot model.
     base
         Its base parameters.
-    kept
-        Standard-parameter indices of the base columns the criteria use.
-    kept_names
-        Their base names.
-    dropped
-        Base names left out because their column is identically zero.
     sign_columns
         Standard indices of the Coulomb columns (sign of a velocity): their derivative with
         respect to the state is zero almost everywhere.
@@ -75,14 +62,21 @@ class DesignModel:
 
     model: RobotModel
     base: BaseParameters
-    kept: np.ndarray
-    kept_names: list[str]
-    dropped: tuple[str, ...]
     sign_columns: np.ndarray
 
     @property
     def robot(self) -> Robot:
         return self.model.robot
+
+    @property
+    def kept(self) -> np.ndarray:
+        """Standard-parameter indices of the base columns the criteria use."""
+        return np.asarray(self.base.base_index)
+
+    @property
+    def kept_names(self) -> list[str]:
+        """Their base names."""
+        return list(self.base.names)
 
     @property
     def n_kept(self) -> int:
@@ -92,22 +86,12 @@ class DesignModel:
 def design_model(
     model: RobotModel, base: BaseParameters | None = None, *, seed: int = 0
 ) -> DesignModel:
-    """Prepare the criteria for ``model`` (base parameters, structurally zero columns)."""
+    """Prepare the criteria for ``model``: its base parameters (which already leave out columns
+    without effect) and the Coulomb columns."""
     base = base if base is not None else base_parameters(model, seed=seed)
-    rng = np.random.default_rng(seed + 7)
-    w = base.columns(stack_joint_major(standard_regressor(model, *random_states(model, 200, rng))))
-    norms = np.linalg.norm(w, axis=0)
-    keep = norms > ZERO_COLUMN * norms.max()
     names = standard_names(model.robot)
     sign = np.array([i for i, nm in enumerate(names) if nm.startswith(("Fc", "fcm"))], dtype=int)
-    return DesignModel(
-        model=model,
-        base=base,
-        kept=np.asarray(base.base_index)[keep],
-        kept_names=[nm for nm, k in zip(base.names, keep, strict=True) if k],
-        dropped=tuple(nm for nm, k in zip(base.names, keep, strict=True) if not k),
-        sign_columns=sign,
-    )
+    return DesignModel(model=model, base=base, sign_columns=sign)
 
 
 def observation_matrix(design: DesignModel, w_std: np.ndarray) -> np.ndarray:

@@ -153,7 +153,6 @@ class OptimisationResult:
     starts: list[StartResult]
     skipped: int
     seconds: float
-    dropped_columns: tuple[str, ...] = ()
     metrics: dict[str, float] = field(default_factory=dict)
 
     @property
@@ -345,9 +344,9 @@ def _init_worker(robot: Robot, settings: ExcitationSettings) -> None:
     _WORKER = Problem(robot, settings)
 
 
-def _run_in_worker(index: int) -> tuple[StartResult, tuple[str, ...]]:
+def _run_in_worker(index: int) -> StartResult:
     assert _WORKER is not None
-    return _WORKER.run_start(index), _WORKER.design.dropped
+    return _WORKER.run_start(index)
 
 
 Progress = Callable[[StartResult, StartResult], None]
@@ -394,7 +393,6 @@ def optimise(
     cap = settings.wall_cap_s
     results: list[StartResult] = []
     best: StartResult | None = None
-    dropped: tuple[str, ...] = ()
     skipped = 0
 
     def accept(r: StartResult) -> None:
@@ -410,7 +408,6 @@ def optimise(
 
     if in_process:
         prob = Problem(robot, settings)
-        dropped = prob.design.dropped
         for i in range(settings.starts):
             if i > 0 and over_cap():
                 skipped = settings.starts - i
@@ -429,7 +426,7 @@ def optimise(
                 initargs=(robot, settings),
             ) as pool:
                 pending = list(range(settings.starts))
-                running: dict[Future[tuple[StartResult, tuple[str, ...]]], int] = {}
+                running: dict[Future[StartResult], int] = {}
                 # Submit as workers free up, so that the wall-clock cap can still skip starts.
                 while pending and len(running) < jobs:
                     i = pending.pop(0)
@@ -438,8 +435,7 @@ def optimise(
                     done, _ = wait(running, return_when=FIRST_COMPLETED)
                     for fut in sorted(done, key=lambda f: running[f]):
                         del running[fut]
-                        res, dropped = fut.result()
-                        accept(res)
+                        accept(fut.result())
                     while pending and len(running) < jobs:
                         if over_cap():
                             skipped += len(pending)
@@ -466,7 +462,6 @@ def optimise(
         starts=results,
         skipped=skipped,
         seconds=time.perf_counter() - t0,
-        dropped_columns=dropped,
     )
 
 

@@ -45,7 +45,7 @@ def test_structurally_zero_columns_are_left_out(setup) -> None:
             assert norms[k] > 1e-6 * norms.max()
         else:
             assert norms[k] < 1e-12 * norms.max()
-    # the base set minus the dropped columns has full column rank
+    # the base set (no zero column: base_parameters leaves them out) has full column rank
     a = w[:, design.kept]
     assert np.linalg.matrix_rank(a / np.linalg.norm(a, axis=0)) == design.n_kept
 

@@ -46,7 +46,6 @@ def test_small_optimisation_improves_and_is_feasible(robot) -> None:
         assert s.cond < s.initial_cond  # SLSQP improved on its random feasible start
         print(f"start {s.index}: random {s.initial_cond:.3g} -> {s.cond:.3g} ({s.message})")
     assert result.objective == best.objective
-    assert result.dropped_columns == ()  # base_parameters already leaves out zero columns
     lim = ExcitationLimits.from_robot(robot)
     assert fourier_usage(result.fourier, lim).worst <= 1.0
     # Independent dense check of the excitation against the working limits.
