@@ -318,3 +318,34 @@ def test_concurrent_calls_agree(tx40: RobotModel) -> None:
         got = list(pool.map(lambda s: reg.standard_regressor(tx40, *s), states))
     for e, g in zip(expected, got, strict=True):
         np.testing.assert_array_equal(g, e)
+
+
+def test_half_angle_sin_cos_matches_numpy() -> None:
+    """The regressor's sine and cosine (from tan(q/2)) against numpy's, over and beyond ±π."""
+    q = np.concatenate(
+        [
+            np.linspace(-4.8, 4.8, 200_001),
+            np.pi * np.array([1.0, -1.0, 0.5, -0.5, 0.0]),
+            np.nextafter(np.pi, 0.0) * np.array([1.0, -1.0]),
+        ]
+    )
+    sin, cos = np.empty_like(q), np.empty_like(q)
+    reg._sin_cos(q.copy(), sin, cos)
+    np.testing.assert_allclose(sin, np.sin(q), rtol=0.0, atol=3e-16)
+    np.testing.assert_allclose(cos, np.cos(q), rtol=0.0, atol=3e-16)
+
+
+def test_output_is_fresh_and_not_held(tx40: RobotModel) -> None:
+    """Each call returns its own array; the cached kernel keeps no view of it."""
+    rng = np.random.default_rng(4)
+    q, qd, qdd = random_states(tx40.robot, reg.CHUNK + 5, rng)
+    a = reg.standard_regressor(tx40, q, qd, qdd)
+    b = reg.standard_regressor(tx40, q, qd, qdd)
+    assert not np.shares_memory(a, b)
+    np.testing.assert_array_equal(a, b)
+    a[...] = np.nan  # writable, and writing it changes nothing the next call sees
+    np.testing.assert_array_equal(reg.standard_regressor(tx40, q, qd, qdd), b)
+    for store in reg._CACHE.values():
+        for key, kern in store[1].items():
+            if key[0] == "kernel" and kern._full is not None:
+                assert all(args[pos] is None for args, pos, _ in kern._full[1])
