@@ -17,7 +17,11 @@ from drivegain.acquire.supervision import Supervision
 from drivegain.config._toml import Table, read_toml
 from drivegain.config.robot import Robot, load_robot
 from drivegain.drivers.bus import BusConfig, bus_config_from_table
+from drivegain.drivers.ipcbus import INTERFACE as IPC_INTERFACE
 from drivegain.drivers.sim import SimConfig, sim_config_from_table
+
+#: Buses a simulated cell may be attached to.
+SIMULATION_INTERFACES = ("virtual", IPC_INTERFACE)
 
 _ACQ_KEYS = {
     "robot",
@@ -109,6 +113,13 @@ def load_acquisition_config(path: str | Path) -> AcquisitionConfig:
     supervision = _supervision(a, robot)
     bus = bus_config_from_table(root.table("bus"))
     sim = sim_config_from_table(root.table("simulation"), base) if root.has("simulation") else None
+    if sim is not None and bus.interface not in SIMULATION_INTERFACES:
+        raise root.table("bus").error(
+            "interface",
+            f"a [simulation] runs on the virtual bus (drives in this process) or {IPC_INTERFACE} "
+            f"(drives in a child process), not {bus.interface}: simulated drives never go on a "
+            "real bus",
+        )
     daemon = _daemon(root.table("daemon")) if root.has("daemon") else None
     warn = a.get_float("bus_load_warn", 0.7, positive=True)
     if warn > 1.0:

@@ -16,8 +16,10 @@ import canopen
 
 from drivegain.acquire.config import AcquisitionConfig
 from drivegain.drivers.bus import open_network
+from drivegain.drivers.ipcbus import INTERFACE as IPC_INTERFACE
 from drivegain.drivers.master import DriveEvent, Master, Timeouts
 from drivegain.drivers.sim import SimConfig, SimulatedCell
+from drivegain.drivers.simprocess import SimulatedCellProcess
 
 log = logging.getLogger(__name__)
 
@@ -40,6 +42,9 @@ def simulation_for_run(sim: SimConfig, payload: Path | None, seed: int | None = 
 class Rig:
     """The network, the optional simulated cell and the booted master of a configuration.
 
+    A simulated cell runs in this process on the ``virtual`` bus, or in a child process on the
+    ``drivegain-ipc`` bus (:mod:`drivegain.drivers.simprocess`), as ``[bus]`` says.
+
     Parameters
     ----------
     cfg
@@ -53,7 +58,7 @@ class Rig:
     def __init__(self, cfg: AcquisitionConfig, simulation: SimConfig | None = None):
         self.cfg = cfg
         self.simulation = simulation if simulation is not None else cfg.simulation
-        self.cell: SimulatedCell | None = None
+        self.cell: SimulatedCell | SimulatedCellProcess | None = None
         self.network: canopen.Network | None = None
         self.master: Master | None = None
         self.boot_events: list[DriveEvent] = []
@@ -69,9 +74,8 @@ class Rig:
         cfg = self.cfg
         try:
             if self.simulation is not None:
-                self.cell = SimulatedCell(
-                    cfg.robot, cfg.bus, self.simulation, cfg.period_s, eds=cfg.eds
-                )
+                host = SimulatedCellProcess if cfg.bus.interface == IPC_INTERFACE else SimulatedCell
+                self.cell = host(cfg.robot, cfg.bus, self.simulation, cfg.period_s, eds=cfg.eds)
                 self.cell.start()
             self.network = open_network(cfg.bus)
             self.master = Master(

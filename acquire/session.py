@@ -267,6 +267,7 @@ class Session:
         self._warnings = list(prepared.warnings)
         self._recorder: Recorder | None = None
         self._pacer: Pacer | None = None
+        self._priority_before: tuple[int, os.sched_param] | None = None
 
     # -- planning ------------------------------------------------------------------------------
 
@@ -373,6 +374,7 @@ class Session:
         finally:
             if gc_was_frozen:
                 gc.unfreeze()
+            self._restore_priority()
         return self._finish_ok(recorder)
 
     def _loop(self, pacer: Pacer, recorder: Recorder) -> None:
@@ -611,15 +613,29 @@ class Session:
             self._event(ev.level, ev.text, node=ev.node, code=ev.code, drive_time_ns=ev.time_ns)
 
     def _set_realtime_priority(self) -> None:
+        """SCHED_FIFO for the cycle thread (the calling thread), if configured and allowed."""
         prio = self.cfg.rt_priority
         if prio <= 0 or self.cfg.clock != "realtime":
             return
         try:
+            before = (os.sched_getscheduler(0), os.sched_getparam(0))
             os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(prio))
         except (PermissionError, OSError) as exc:
             text = f"cannot use SCHED_FIFO priority {prio} ({exc}): running at normal priority"
             log.warning("%s", text)
             self._event("warning", text)
+            return
+        self._priority_before = before
+
+    def _restore_priority(self) -> None:
+        """The thread's scheduling before the run (the caller goes on at normal priority)."""
+        before, self._priority_before = self._priority_before, None
+        if before is None:
+            return
+        try:
+            os.sched_setscheduler(0, before[0], before[1])
+        except OSError as exc:
+            log.warning("cannot restore the scheduling policy after the run: %s", exc)
 
 
 def _safe_abandon(recorder: Recorder) -> None:

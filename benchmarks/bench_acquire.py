@@ -7,21 +7,26 @@ One command::
 
 What it measures, each against a baseline taken in the same run on the same machine:
 
-1. Realtime, 250 Hz and 500 Hz, 6 simulated drives on the virtual bus, a full session (cycle loop,
-   supervision, recorder thread writing MCAP) on a slow 0.5 Hz excitation: lost cycles (deadline
-   missed by more than a period, or the last TPDO later than the period), p50/p99 SYNC jitter
-   (deviation of the SYNC interval from the period) and p99 as a fraction of the period (target
-   below 20 %), SYNC-to-last-TPDO latency, CPU use of the process (master + simulated drives +
-   recorder). Baseline: the same absolute-deadline loop with no bus work, i.e. what the OS
-   scheduler alone gives.
+1. Realtime, 250 Hz and 500 Hz, 6 simulated drives, a full session (cycle loop, supervision,
+   recorder thread writing MCAP) on a slow 0.5 Hz excitation. The simulated drives run in a
+   child process on the ``drivegain-ipc`` bus (``--sim-host process``, default; as real drives
+   they then take no CPU time or interpreter lock from the master) or in the master's process on
+   the virtual bus (``--sim-host thread``). The cycle thread asks for SCHED_FIFO priority 80 as
+   the hardware configuration does (``--rt-priority``; whether it was granted is printed).
+   Printed: lost cycles (deadline missed by more than a period, or the last TPDO later than the
+   period), p50/p99 SYNC jitter (deviation of the SYNC interval from the period) and p99 as a
+   fraction of the period (target below 20 %), SYNC-to-last-TPDO latency, CPU of the master's
+   process and of the drives' process. Baseline: the same absolute-deadline loop with no bus
+   work, at the same priority, while the same simulated drives run enabled beside it: what the
+   machine's scheduler alone gives under that load (its missed deadlines are printed too).
 2. Lockstep, 250 Hz: simulated seconds per wall second of a full session, against the bare
    ``Master.cycle`` loop without session and recorder.
 3. Memory: a long lockstep session (10 simulated minutes by default): resident memory sampled
    every 10 simulated seconds, its growth after the first minutes and the peak.
 
 500 Hz needs 125 % of a 1 Mbit/s bus with 6 drives (worst-case stuffing), which a session
-refuses; the virtual bus has no bitrate, so for the software timing at 500 Hz this script turns
-the refusal into a printed note. Real hardware at 500 Hz needs fewer drives per bus.
+refuses; the simulated buses have no bitrate, so for the software timing at 500 Hz this script
+turns the refusal into a printed note. Real hardware at 500 Hz needs fewer drives per bus.
 """
 
 from __future__ import annotations
@@ -30,6 +35,7 @@ import argparse
 import dataclasses
 import json
 import math
+import os
 import resource
 import sys
 import tempfile
@@ -46,7 +52,8 @@ from drivegain.acquire.rig import Rig
 from drivegain.acquire.session import RunRequest, Session, prepare_run
 from drivegain.acquire.stats import LoopStats
 from drivegain.config import load_robot, resource_path
-from drivegain.drivers.bus import BusLoad, bus_load
+from drivegain.drivers.bus import BusConfig, BusLoad, bus_load
+from drivegain.drivers.ipcbus import INTERFACE as IPC_INTERFACE
 from drivegain.errors import ConfigError
 from drivegain.excite.fourier import FourierTrajectory
 from drivegain.excite.trajectory import save_trajectory, trajectory_document
@@ -94,17 +101,30 @@ def gentle_trajectory(duration_s: float, folder: Path) -> Path:
     )
 
 
-def config(clock: str, period_s: float, folder: Path) -> AcquisitionConfig:
+def config(
+    clock: str, period_s: float, folder: Path, *, sim_host: str = "thread", rt_priority: int = 0
+) -> AcquisitionConfig:
     base = load_acquisition_config(resource_path("acquire-sim.toml"))
     assert base.simulation is not None
     sim = dataclasses.replace(base.simulation, clock=clock, history_s=1.0)
+    bus = base.bus
+    if sim_host == "process":
+        bus = BusConfig(IPC_INTERFACE, str(folder / f"bus-{time.monotonic_ns()}.sock"), bus.bitrate)
     return dataclasses.replace(
         base,
         period_s=period_s,
         simulation=sim,
+        bus=bus,
+        rt_priority=rt_priority,
         # a late TPDO is counted (late_cycles), not fatal: the benchmark measures them
         tpdo_timeout_s=0.2 if clock == "realtime" else 2.0,
     )
+
+
+def children_cpu_s() -> float:
+    """CPU time of the reaped child processes so far (the simulated drives' process), s."""
+    ru = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return ru.ru_utime + ru.ru_stime
 
 
 _original_check = session_mod.check_bus_load
@@ -124,7 +144,7 @@ def _virtual_bus_check(
     try:
         return _original_check(n_nodes, period_s, bitrate, warn=warn, config=config, load=load)
     except ConfigError as exc:
-        _notes.append(f"bus-load check bypassed for the virtual bus: {exc.message}")
+        _notes.append(f"bus-load check bypassed for the simulated bus: {exc.message}")
         return (load or bus_load(n_nodes, period_s, bitrate)), None
 
 
@@ -152,52 +172,97 @@ def run_session(
     return session, wall, cpu, samples
 
 
-def baseline_pacing(period_s: float, seconds: float) -> LoopStats:
+def baseline_pacing(period_s: float, seconds: float, rt_priority: int = 0) -> LoopStats:
     """The absolute-deadline loop alone (no bus): the scheduler's own jitter."""
     stats = LoopStats(period_s=period_s, clock="realtime")
     pacer = RealtimePacer(period_s, stats)
-    pacer.start()
-    last = None
-    for k in range(int(seconds / period_s)):
-        pacer.wait(k)
-        now = time.monotonic_ns()
-        if last is not None:
-            stats.sync_dev.add(abs(now - last - round(period_s * 1e9)))
-        last = now
+    policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
+    if rt_priority > 0:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(rt_priority))
+        except OSError:
+            pass
+    try:
+        pacer.start()
+        last = None
+        for k in range(int(seconds / period_s)):
+            pacer.wait(k)
+            now = time.monotonic_ns()
+            if last is not None:
+                stats.sync_dev.add(abs(now - last - round(period_s * 1e9)))
+            last = now
+    finally:
+        os.sched_setscheduler(0, policy, param)
     return stats
 
 
-def realtime(duration: float, rates: list[float], folder: Path) -> None:
-    print(f"\n== realtime, 6 simulated drives, {duration:g} s of excitation per rate ==")
+def baseline_under_load(cfg: AcquisitionConfig, seconds: float) -> LoopStats:
+    """The bare loop while the same simulated drives run enabled (holding position) beside it."""
+    with Rig(cfg) as master:
+        master.enable()
+        return baseline_pacing(cfg.period_s, seconds, cfg.rt_priority)
+
+
+def fifo_granted(priority: int) -> str:
+    if priority <= 0:
+        return "not asked"
+    policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except OSError as exc:
+        return f"refused ({exc.strerror})"
+    os.sched_setscheduler(0, policy, param)
+    return "granted"
+
+
+def realtime(
+    duration: float, rates: list[float], folder: Path, sim_host: str, rt_priority: int
+) -> None:
+    where = "their own process" if sim_host == "process" else "the master's process"
+    print(
+        f"\n== realtime, 6 simulated drives in {where}, {duration:g} s of excitation per rate, "
+        f"SCHED_FIFO {rt_priority}: {fifo_granted(rt_priority)} =="
+    )
     header = (
         f"{'rate':>6} {'cycles':>7} {'lost':>5} {'jit p50':>8} {'jit p99':>8} {'p99/T':>6} "
-        f"{'lat p99':>8} {'CPU':>6} | {'base p50':>8} {'base p99':>8} {'ratio p99':>9}"
+        f"{'lat p99':>8} {'CPU':>6} {'CPU sim':>7} | {'lost':>5} {'base p50':>8} "
+        f"{'base p99':>8} {'p99/T':>6}"
     )
     print(header)
     traj = gentle_trajectory(duration, folder)
     for rate in rates:
         period = 1.0 / rate
-        base = baseline_pacing(period, min(duration, 10.0))
-        cfg = config("realtime", period, folder)
+        cfg = config("realtime", period, folder, sim_host=sim_host, rt_priority=rt_priority)
+        base = baseline_under_load(cfg, min(duration, 30.0))
+        base_lost = base.overruns
+        child0 = children_cpu_s()
         try:
             s, wall, cpu, _ = run_session(cfg, traj, folder / f"rt-{rate:g}.mcap")
             lost = s.stats.overruns + s.stats.late_cycles
         except Exception as exc:  # a lost TPDO ends the run: report it as such
             print(f"{rate:6g} run stopped: {exc}")
             continue
+        cpu_sim = (children_cpu_s() - child0) / wall if sim_host == "process" else float("nan")
         st = s.stats
         p50, p99 = st.sync_dev.quantile(0.5) / 1e3, st.sync_dev.quantile(0.99) / 1e3
         b50, b99 = base.sync_dev.quantile(0.5) / 1e3, base.sync_dev.quantile(0.99) / 1e3
         print(
             f"{rate:6g} {st.cycles:7d} {lost:5d} {p50:7.0f}µ {p99:7.0f}µ "
             f"{p99 / (period * 1e6):6.1%} {st.service.quantile(0.99) / 1e3:7.0f}µ "
-            f"{cpu / wall:6.1%} | {b50:7.0f}µ {b99:7.0f}µ {p99 / max(b99, 1e-3):8.1f}x"
+            f"{cpu / wall:6.1%} {cpu_sim:7.1%} | {base_lost:5d} {b50:7.0f}µ {b99:7.0f}µ "
+            f"{b99 / (period * 1e6):6.1%}"
+        )
+        print(
+            f"{'':6} lost = {st.overruns} deadlines missed by more than a period + "
+            f"{st.late_cycles} cycles whose last TPDO came after the period; baseline: "
+            f"{int(min(duration, 30.0) * rate)} cycles, {base_lost} missed"
         )
     for note in dict.fromkeys(_notes):
         print(f"  note: {note}")
     print(
-        "  lost: deadlines missed by more than a period + cycles whose last TPDO came after the "
-        "period;\n  jit: |SYNC interval − period|; lat: SYNC to the last TPDO; CPU: whole process"
+        "  jit: |SYNC interval − period|; lat: SYNC to the last TPDO; CPU: the master's process "
+        "(session,\n  recorder, bus reader), CPU sim: the simulated drives' process; both "
+        "in % of one core"
     )
 
 
@@ -250,12 +315,21 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--lockstep-seconds", type=float, default=60.0)
     p.add_argument("--memory-minutes", type=float, default=10.0)
     p.add_argument("--skip", nargs="*", default=[], choices=["realtime", "lockstep", "memory"])
+    p.add_argument(
+        "--sim-host",
+        choices=["process", "thread"],
+        default="process",
+        help="realtime: simulated drives in their own process (default) or the master's",
+    )
+    p.add_argument(
+        "--rt-priority", type=int, default=80, help="realtime: SCHED_FIFO priority, 0 = off"
+    )
     args = p.parse_args(argv)
     quiet_libraries()
     with tempfile.TemporaryDirectory(prefix="bench-acquire-") as tmp:
         folder = Path(tmp)
         if "realtime" not in args.skip:
-            realtime(args.duration, args.rates, folder)
+            realtime(args.duration, args.rates, folder, args.sim_host, args.rt_priority)
         if "lockstep" not in args.skip:
             lockstep(args.lockstep_seconds, folder)
         if "memory" not in args.skip:

@@ -50,6 +50,7 @@ def _virtual_bus_counts() -> dict[object, int]:
 
 @pytest.fixture(autouse=True)
 def _no_leaked_bus_or_thread():
+    import sys
     import threading
     import time
 
@@ -68,7 +69,18 @@ def _no_leaked_bus_or_thread():
         if (not extra and not grown) or time.monotonic() > deadline:
             break
         time.sleep(0.01)
+    ipc = sys.modules.get("drivegain.drivers.ipcbus")
+    if ipc is not None and len(ipc.OPEN_BUSES):
+        problems_ipc = [str(b) for b in ipc.OPEN_BUSES]
+    else:
+        problems_ipc = []
+    simproc = sys.modules.get("drivegain.drivers.simprocess")
+    children = [c.pid for c in simproc.RUNNING] if simproc is not None else []
     problems = []
+    if problems_ipc:
+        problems.append(f"drivegain IPC bus(es) left open: {problems_ipc}")
+    if children:
+        problems.append(f"simulated cell process(es) left running: {children}")
     if grown:
         problems.append(f"python-can virtual bus(es) left open: {grown}")
     if extra:

@@ -43,16 +43,23 @@ def write_config(
     daemon: str = "",
     bitrate: int = 1_000_000,
     noise: float = 0.05,
+    interface: str = "virtual",
 ) -> Path:
-    """An acquisition TOML of the simulated TX-40 on its own virtual channel."""
+    """An acquisition TOML of the simulated TX-40 on its own channel.
+
+    ``interface = "drivegain-ipc"`` puts the simulated drives in a child process; the channel is
+    then a socket path (short: Unix socket paths are limited to about 100 bytes).
+    """
     channel = f"acq-test-{next(_channels)}-{time.monotonic_ns()}"
+    if interface != "virtual":
+        channel = f"/tmp/dg-{channel}.sock"
     lines = [
         "[acquisition]",
         f'robot = "{resource_path("tx40.toml")}"',
         f"period_s = {period_s}",
         acquisition,
         "[bus]",
-        'interface = "virtual"',
+        f'interface = "{interface}"',
         f'channel = "{channel}"',
         f"bitrate = {bitrate}",
         "[simulation]",

@@ -21,6 +21,9 @@ def test_shipped_configs_load() -> None:
     assert (hw.bus.interface, hw.bus.channel, hw.bus.bitrate) == ("socketcan", "can0", 1_000_000)
     assert hw.daemon is not None and hw.daemon.log_format == "json"
     assert hw.robot.name == sim.robot.name
+    rt = load_acquisition_config(resource_path("acquire-sim-realtime.toml"))
+    assert rt.clock == "realtime" and rt.bus.interface == "drivegain-ipc"
+    assert rt.simulation is not None and rt.rt_priority == 80
 
 
 def test_systemd_unit_is_type_notify() -> None:

@@ -1,0 +1,231 @@
+"""The simulated cell in a child process, attached to the master by the ``drivegain-ipc`` bus.
+
+In-process, the simulated drives share the master's interpreter lock: their physics and SYNC
+handling (more than half the CPU time of a realtime run) delay the master's cycle thread, which
+real drives never do. Here they run in a process of their own, like separate devices on a cable.
+
+The child is ``python -m drivegain.drivers.simprocess FD`` (not a multiprocessing child, which
+would re-run the parent's main script), talking pickles over a socket pair. It ignores SIGINT
+and SIGTERM: a Ctrl-C or a service stop reaches the whole process group,
+and the drives must keep answering while the master decelerates and disables them. It stops when
+the parent says so or when the parent is gone (its end of the control pipe closes).
+"""
+
+from __future__ import annotations
+
+import signal
+import socket
+import subprocess
+import sys
+import weakref
+from multiprocessing.connection import Connection
+from pathlib import Path
+from types import TracebackType
+
+from drivegain import errors as errs
+from drivegain.config.robot import Robot
+from drivegain.drivers.bus import BusConfig
+from drivegain.drivers.ipcbus import INTERFACE
+from drivegain.drivers.sim import FaultRecord, SimConfig, SimulatedCell
+from drivegain.errors import ConfigError, DriveError
+
+#: How long the child may take to import, build the simulation and listen, s.
+START_TIMEOUT_S = 60.0
+#: How long the child may take to stop and report, s.
+STOP_TIMEOUT_S = 10.0
+_POLL_S = 0.2
+#: Cells whose child may still run (the test suite's leak check reads it).
+RUNNING: weakref.WeakSet[SimulatedCellProcess] = weakref.WeakSet()
+
+
+def _serve(
+    robot: Robot,
+    bus_cfg: BusConfig,
+    sim: SimConfig,
+    period_s: float,
+    eds: Path | None,
+    conn: Connection,
+) -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    try:
+        cell = SimulatedCell(robot, bus_cfg, sim, period_s, eds=eds)
+        cell.start()
+    except errs.DrivegainError as exc:
+        conn.send(("error", type(exc).__name__, str(exc)))
+        return
+    except Exception as exc:
+        conn.send(("error", "DriveError", f"the simulated cell failed to start: {exc!r}"))
+        return
+    try:
+        conn.send(("ready", None, None))
+        while True:
+            if conn.poll(_POLL_S):
+                conn.recv()  # "stop"; EOFError when the parent is gone
+                break
+    except (EOFError, OSError):
+        pass
+    finally:
+        cell.stop()
+    try:
+        conn.send(("stopped", cell.errors, cell.fault_log()))
+    except (OSError, EOFError):
+        pass
+
+
+def main(argv: list[str]) -> int:
+    """Child entry point: ``python -m drivegain.drivers.simprocess FD``."""
+    conn = Connection(int(argv[1]))
+    try:
+        args = conn.recv()
+    except (EOFError, OSError):
+        return 1
+    _serve(*args, conn)
+    return 0
+
+
+def _error(kind: str, message: str) -> errs.DrivegainError:
+    cls = getattr(errs, kind, None)
+    if isinstance(cls, type) and issubclass(cls, errs.DrivegainError):
+        try:
+            return cls(message)
+        except TypeError:
+            pass
+    return DriveError(message)
+
+
+class SimulatedCellProcess:
+    """A :class:`~drivegain.drivers.sim.SimulatedCell` served from a child process.
+
+    Parameters
+    ----------
+    robot, sim, period_s, eds
+        As for :class:`~drivegain.drivers.sim.SimulatedCell`.
+    bus_cfg
+        The master's bus: ``interface = "drivegain-ipc"``, ``channel`` the socket path. The
+        child opens it as the server.
+
+    Use as a context manager, or :meth:`start` then :meth:`stop` (which never raises).
+    ``errors`` and :meth:`fault_log` are filled when the child has stopped.
+    """
+
+    def __init__(
+        self,
+        robot: Robot,
+        bus_cfg: BusConfig,
+        sim: SimConfig,
+        period_s: float,
+        *,
+        eds: Path | None = None,
+    ):
+        if bus_cfg.interface != INTERFACE:
+            raise ConfigError(
+                f"a simulated cell in its own process needs the {INTERFACE} interface, "
+                f"not {bus_cfg.interface}"
+            )
+        self.robot = robot
+        self.bus_cfg = BusConfig(
+            interface=INTERFACE,
+            channel=bus_cfg.channel,
+            bitrate=bus_cfg.bitrate,
+            extra={**bus_cfg.extra, "role": "server"},
+        )
+        self.sim = sim
+        self.period_s = period_s
+        self.eds = eds
+        self._conn: Connection | None = None
+        self._proc: subprocess.Popen[bytes] | None = None
+        self._errors: list[str] = []
+        self._faults: list[FaultRecord] = []
+
+    @property
+    def pid(self) -> int | None:
+        """Process id of the child while it runs."""
+        return self._proc.pid if self._proc is not None else None
+
+    def start(self) -> None:
+        """Start the child and wait until its drives are on the bus.
+
+        Raises
+        ------
+        ConfigError, DriveError, BusError
+            As :class:`SimulatedCell` would raise them; DriveError if the child does not come up
+            within :data:`START_TIMEOUT_S`.
+        """
+        if self._proc is not None:
+            raise DriveError("the simulated cell is already started")
+        mine, theirs = socket.socketpair()
+        with theirs:
+            proc = subprocess.Popen(
+                [sys.executable, "-m", "drivegain.drivers.simprocess", str(theirs.fileno())],
+                pass_fds=(theirs.fileno(),),
+                stdin=subprocess.DEVNULL,
+            )
+        conn = Connection(mine.detach())
+        self._proc, self._conn = proc, conn
+        RUNNING.add(self)
+        try:
+            conn.send((self.robot, self.bus_cfg, self.sim, self.period_s, self.eds))
+            if not conn.poll(START_TIMEOUT_S):
+                raise DriveError(
+                    f"the simulated cell process did not start within {START_TIMEOUT_S:g} s"
+                )
+            kind, a, b = conn.recv()
+        except (EOFError, OSError):
+            self.stop()
+            raise DriveError(
+                f"the simulated cell process exited during start-up (exit code {proc.returncode})"
+            ) from None
+        except BaseException:
+            self.stop()
+            raise
+        if kind == "error":
+            self.stop()
+            raise _error(a, b)
+
+    def stop(self) -> None:
+        """Tell the child to stop, collect its report, reap it (never raises)."""
+        proc, conn = self._proc, self._conn
+        self._proc = self._conn = None
+        if conn is not None:
+            try:
+                conn.send("stop")
+                if conn.poll(STOP_TIMEOUT_S):
+                    kind, errors, faults = conn.recv()
+                    if kind == "stopped":
+                        self._errors, self._faults = errors, faults
+            except (OSError, EOFError, ValueError):
+                pass
+            conn.close()
+        if proc is not None:
+            try:
+                proc.wait(STOP_TIMEOUT_S)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+        RUNNING.discard(self)
+
+    @property
+    def errors(self) -> list[str]:
+        """Exceptions raised in the child's bus callbacks (known once it has stopped)."""
+        return list(self._errors)
+
+    def fault_log(self) -> list[FaultRecord]:
+        """Injected faults that took effect (known once the child has stopped)."""
+        return list(self._faults)
+
+    def __enter__(self) -> SimulatedCellProcess:
+        self.start()
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.stop()
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv))
