@@ -106,7 +106,7 @@ class IpcBus(can.BusABC):
             raise can.CanInitializationError(f"role must be one of {_ROLES}, got {role!r}")
         kwargs.pop("bitrate", None)
         kwargs.pop("receive_own_messages", None)
-        super().__init__(channel=channel, **kwargs)
+        super().__init__(channel=str(channel), **kwargs)
         self.path = Path(channel)
         self.role = role
         self.channel_info = f"drivegain IPC bus {self.path} ({role})"

@@ -77,10 +77,10 @@ def main(argv: list[str]) -> int:
     """Child entry point: ``python -m drivegain.drivers.simprocess FD``."""
     conn = Connection(int(argv[1]))
     try:
-        args = conn.recv()
+        robot, bus_cfg, sim, period_s, eds = conn.recv()
     except (EOFError, OSError):
         return 1
-    _serve(*args, conn)
+    _serve(robot, bus_cfg, sim, period_s, eds, conn)
     return 0
 
 

@@ -363,6 +363,8 @@ def _entries(model: RobotModel, prog: _Program, layout: _Layout) -> tuple[int, d
 
 
 _BINARY = frozenset({"mul", "add", "sub"})
+#: Padding of each work row, elements (see _Kernel).
+_ROW_PAD = 16
 
 
 def _sources(op: _Op) -> tuple[int, ...]:
@@ -491,7 +493,9 @@ class _Kernel:
                 args.append(("c", float(b)))  # type: ignore[arg-type]
             self.plan.append((_UFUNC[kind], (*args, dst)))
         self.n_rows = n_rows
-        self.work = np.zeros((n_rows, chunk))
+        # Rows padded by two cache lines: with a power-of-two stride the rows an operation reads
+        # and writes fall in the same cache sets (measured 4-6 % slower when timed alone).
+        self.work = np.zeros((n_rows, chunk + _ROW_PAD))[:, :chunk]
         self.n_temp = n_rows - 5 * n
         self._full: tuple[list[tuple[Callable[..., Any], list[Any]]], list[Any]] | None = None
 

@@ -87,10 +87,8 @@ def test_the_shipped_realtime_config_runs(
 ) -> None:
     monkeypatch.chdir(tmp_path)  # its bus socket is relative to the working directory
     config = resource_path("acquire-sim-realtime.toml")
-    status = main(
-        ["acquire", "--config", str(config), "--trajectory", str(short_trajectory)]
-        + ["--out", "run.mcap"]
-    )
+    args = ["acquire", "--config", str(config), "--trajectory", str(short_trajectory)]
+    status = main([*args, "--out", "run.mcap"])
     assert status == 0
     log = read_run(tmp_path / "run.mcap")
     np.testing.assert_array_equal(log.cycle, np.arange(log.cycle.size))
