@@ -22,7 +22,6 @@ import logging
 import os
 import selectors
 import socket
-import stat
 import struct
 import threading
 import time
@@ -38,6 +37,7 @@ from drivegain.acquire.session import RunRequest, RunResult, RunState, Session, 
 from drivegain.acquire.session import validate_label as _validate_label
 from drivegain.acquire.stop import StopRequest
 from drivegain.errors import ConfigError, DrivegainError, InputError
+from drivegain.unixsock import NotASocket, SocketInUse, bind_private
 
 log = logging.getLogger(__name__)
 
@@ -165,31 +165,16 @@ class Daemon:
     def _listen(self) -> None:
         path = self.settings.socket
         path.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
-        if path.exists() or path.is_symlink():
-            if not stat.S_ISSOCK(path.lstat().st_mode):
-                raise ConfigError(
-                    f"{path} exists and is not a socket", file=self.cfg.source, key="daemon.socket"
-                )
-            probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-            try:
-                probe.connect(str(path))
-            except OSError:
-                path.unlink()  # stale socket of a daemon that died
-            else:
-                raise ConfigError(
-                    f"another daemon is listening on {path}",
-                    file=self.cfg.source,
-                    key="daemon.socket",
-                )
-            finally:
-                probe.close()
-        listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        old = os.umask(0o177)  # the socket is born 0600: no window where others could connect
         try:
-            listener.bind(str(path))
-        finally:
-            os.umask(old)
-        os.chmod(path, 0o600)
+            listener = bind_private(path, socket.SOCK_STREAM)
+        except NotASocket:
+            raise ConfigError(
+                f"{path} exists and is not a socket", file=self.cfg.source, key="daemon.socket"
+            ) from None
+        except SocketInUse:
+            raise ConfigError(
+                f"another daemon is listening on {path}", file=self.cfg.source, key="daemon.socket"
+            ) from None
         listener.listen(8)
         listener.setblocking(False)
         self._selector.register(listener, selectors.EVENT_READ, None)

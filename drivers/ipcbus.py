@@ -25,7 +25,6 @@ from __future__ import annotations
 import os
 import select
 import socket
-import stat
 import struct
 import threading
 import time
@@ -34,6 +33,8 @@ from pathlib import Path
 from typing import Any
 
 import can
+
+from drivegain.unixsock import NotASocket, SocketInUse, bind_private
 
 #: python-can interface name of this bus.
 INTERFACE = "drivegain-ipc"
@@ -124,31 +125,13 @@ class IpcBus(can.BusABC):
 
     # --- set-up ---------------------------------------------------------------------------------
     def _listen(self) -> socket.socket:
-        path = self.path
         try:
-            st = path.lstat()
-        except FileNotFoundError:
-            pass
-        else:
-            if not stat.S_ISSOCK(st.st_mode):
-                raise can.CanInitializationError(f"{path} exists and is not a socket")
-            probe = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
-            try:
-                probe.connect(str(path))
-            except OSError:
-                path.unlink()  # a socket left by a killed server
-            else:
-                raise can.CanInitializationError(f"{path} is in use by another bus server")
-            finally:
-                probe.close()
-        sock = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
-        try:
-            sock.bind(str(path))
-            os.chmod(path, 0o600)
-            sock.listen(8)
+            sock = bind_private(self.path, socket.SOCK_SEQPACKET)
+        except (NotASocket, SocketInUse) as exc:
+            raise can.CanInitializationError(str(exc)) from None
         except OSError as exc:
-            sock.close()
-            raise can.CanInitializationError(f"cannot listen on {path}: {exc}") from None
+            raise can.CanInitializationError(f"cannot listen on {self.path}: {exc}") from None
+        sock.listen(8)
         return sock
 
     def _connect(self, timeout_s: float) -> socket.socket:

@@ -4,10 +4,13 @@ from __future__ import annotations
 
 import itertools
 import json
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -16,6 +19,7 @@ import pytest
 from drivegain.config import load_robot, resource_path
 from drivegain.excite.fourier import FourierTrajectory
 from drivegain.excite.trajectory import save_trajectory, trajectory_document
+from drivegain.identify.logformat import iter_channel
 
 _channels = itertools.count()
 
@@ -97,6 +101,39 @@ def make_config(tmp_path: Path) -> Callable[..., Path]:
         return write_config(tmp_path / f"acq{next(counter)}.toml", **kw)
 
     return make
+
+
+def start_acquire(
+    cfg: Path, trajectory: Path, out: Path, *, new_session: bool = False
+) -> subprocess.Popen[bytes]:
+    """``drivegain acquire`` in a subprocess (its own process group with ``new_session``)."""
+    cmd = [sys.executable, "-m", "drivegain.cli", "acquire", "--config", str(cfg)]
+    cmd += ["--trajectory", str(trajectory), "--out", str(out)]
+    return subprocess.Popen(
+        cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=new_session
+    )
+
+
+def wait_for_cycles(part: Path, proc: subprocess.Popen[bytes], cycles: int) -> int:
+    """Wait until the flushed .part holds at least ``cycles`` cycles; return how many."""
+    deadline = time.monotonic() + 90
+    while time.monotonic() < deadline:
+        assert proc.poll() is None, proc.communicate()
+        if part.exists():
+            try:
+                n = sum(1 for _ in iter_channel(part, "/joint_states"))
+            except Exception:  # a chunk being written
+                n = 0
+            if n >= cycles:
+                return n
+        time.sleep(0.2)
+    raise AssertionError("the run did not get going")
+
+
+@pytest.fixture
+def acquire_cli() -> SimpleNamespace:
+    """``start`` and ``wait_for_cycles`` of a ``drivegain acquire`` subprocess."""
+    return SimpleNamespace(start=start_acquire, wait_for_cycles=wait_for_cycles)
 
 
 def _leaky_threads() -> set[threading.Thread]:

@@ -3,59 +3,27 @@
 from __future__ import annotations
 
 import signal
-import subprocess
-import sys
-import time
 from collections.abc import Callable
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
 from drivegain.config import load_robot, resource_path
-from drivegain.identify.logformat import iter_channel, read_run
-
-
-def _start(cfg: Path, trajectory: Path, out: Path) -> subprocess.Popen[bytes]:
-    return subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "drivegain.cli",
-            "acquire",
-            "--config",
-            str(cfg),
-            "--trajectory",
-            str(trajectory),
-            "--out",
-            str(out),
-        ],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-    )
-
-
-def _wait_for_cycles(part: Path, proc: subprocess.Popen[bytes], cycles: int) -> int:
-    """Wait until the flushed .part holds at least ``cycles`` cycles (the writer flushes ~1 s)."""
-    deadline = time.monotonic() + 60
-    while time.monotonic() < deadline:
-        assert proc.poll() is None, proc.communicate()
-        if part.exists():
-            try:
-                n = sum(1 for _ in iter_channel(part, "/joint_states"))
-            except Exception:
-                n = 0
-            if n >= cycles:
-                return n
-        time.sleep(0.2)
-    raise AssertionError("the run did not get going")
+from drivegain.identify.logformat import read_run
 
 
 def test_sigterm_stops_safely_and_finishes_the_log(
-    tmp_path: Path, make_config: Callable[..., Path], long_trajectory: Path
+    tmp_path: Path,
+    make_config: Callable[..., Path],
+    long_trajectory: Path,
+    acquire_cli: SimpleNamespace,
 ) -> None:
     out = tmp_path / "run.mcap"
-    proc = _start(make_config(acquisition="flush_interval_s = 0.2"), long_trajectory, out)
-    _wait_for_cycles(out.with_name("run.mcap.part"), proc, 600)
+    proc = acquire_cli.start(
+        make_config(acquisition="flush_interval_s = 0.2"), long_trajectory, out
+    )
+    acquire_cli.wait_for_cycles(out.with_name("run.mcap.part"), proc, 600)
     proc.send_signal(signal.SIGTERM)
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 0, err.decode()
@@ -75,12 +43,17 @@ def test_sigterm_stops_safely_and_finishes_the_log(
 
 
 def test_sigkill_leaves_a_part_with_every_flushed_cycle(
-    tmp_path: Path, make_config: Callable[..., Path], long_trajectory: Path
+    tmp_path: Path,
+    make_config: Callable[..., Path],
+    long_trajectory: Path,
+    acquire_cli: SimpleNamespace,
 ) -> None:
     out = tmp_path / "run.mcap"
     part = out.with_name("run.mcap.part")
-    proc = _start(make_config(acquisition="flush_interval_s = 0.2"), long_trajectory, out)
-    seen = _wait_for_cycles(part, proc, 500)
+    proc = acquire_cli.start(
+        make_config(acquisition="flush_interval_s = 0.2"), long_trajectory, out
+    )
+    seen = acquire_cli.wait_for_cycles(part, proc, 500)
     proc.kill()
     proc.wait(timeout=30)
     assert proc.returncode == -signal.SIGKILL

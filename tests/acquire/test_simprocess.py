@@ -4,11 +4,10 @@ from __future__ import annotations
 
 import os
 import signal
-import subprocess
-import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -21,7 +20,7 @@ from drivegain.cli import main
 from drivegain.config import resource_path
 from drivegain.drivers.simprocess import SimulatedCellProcess
 from drivegain.errors import BusError, ConfigError
-from drivegain.identify.logformat import iter_channel, read_run
+from drivegain.identify.logformat import read_run
 
 #: A stalled shared machine must not turn a late TPDO into a fault in these tests.
 RELAXED = "tpdo_timeout_s = 0.5"
@@ -42,27 +41,13 @@ def _group_alive(pgid: int) -> list[int]:
     return alive
 
 
-def _start_acquire(cfg: Path, trajectory: Path, out: Path) -> subprocess.Popen[bytes]:
-    cmd = [sys.executable, "-m", "drivegain.cli", "acquire", "--config", str(cfg)]
-    cmd += ["--trajectory", str(trajectory), "--out", str(out)]
-    # its own process group: a signal to the group reaches the simulated drives too
-    return subprocess.Popen(
-        cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True
+def _ipc_config(make_config: Callable[..., Path]) -> Path:
+    """Realtime, drives in a child process, flushed often (for runs killed midway)."""
+    return make_config(
+        clock="realtime",
+        interface="drivegain-ipc",
+        acquisition=RELAXED + "\nflush_interval_s = 0.2",
     )
-
-
-def _wait_for_cycles(part: Path, proc: subprocess.Popen[bytes], cycles: int) -> None:
-    deadline = time.monotonic() + 90
-    while time.monotonic() < deadline:
-        assert proc.poll() is None, proc.communicate()
-        if part.exists():
-            try:
-                if sum(1 for _ in iter_channel(part, "/joint_states")) >= cycles:
-                    return
-            except Exception:
-                pass
-        time.sleep(0.2)
-    raise AssertionError("the run did not get going")
 
 
 def test_realtime_run_with_the_drives_in_a_child_process(
@@ -98,18 +83,16 @@ def test_the_shipped_realtime_config_runs(
 
 
 def test_a_signal_to_the_process_group_still_stops_the_robot_safely(
-    tmp_path: Path, make_config: Callable[..., Path], long_trajectory: Path
+    tmp_path: Path,
+    make_config: Callable[..., Path],
+    long_trajectory: Path,
+    acquire_cli: SimpleNamespace,
 ) -> None:
     """Ctrl-C or a service stop reaches the drives' process too: it keeps serving until the
     master has decelerated and disabled them."""
-    cfg = make_config(
-        clock="realtime",
-        interface="drivegain-ipc",
-        acquisition=RELAXED + "\nflush_interval_s = 0.2",
-    )
     out = tmp_path / "run.mcap"
-    proc = _start_acquire(cfg, long_trajectory, out)
-    _wait_for_cycles(out.with_name("run.mcap.part"), proc, 400)
+    proc = acquire_cli.start(_ipc_config(make_config), long_trajectory, out, new_session=True)
+    acquire_cli.wait_for_cycles(out.with_name("run.mcap.part"), proc, 400)
     os.killpg(proc.pid, signal.SIGTERM)
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 0, err.decode()
@@ -123,16 +106,14 @@ def test_a_signal_to_the_process_group_still_stops_the_robot_safely(
 
 
 def test_the_drives_process_ends_when_the_master_is_killed(
-    tmp_path: Path, make_config: Callable[..., Path], long_trajectory: Path
+    tmp_path: Path,
+    make_config: Callable[..., Path],
+    long_trajectory: Path,
+    acquire_cli: SimpleNamespace,
 ) -> None:
-    cfg = make_config(
-        clock="realtime",
-        interface="drivegain-ipc",
-        acquisition=RELAXED + "\nflush_interval_s = 0.2",
-    )
     out = tmp_path / "run.mcap"
-    proc = _start_acquire(cfg, long_trajectory, out)
-    _wait_for_cycles(out.with_name("run.mcap.part"), proc, 200)
+    proc = acquire_cli.start(_ipc_config(make_config), long_trajectory, out, new_session=True)
+    acquire_cli.wait_for_cycles(out.with_name("run.mcap.part"), proc, 200)
     assert len(_group_alive(proc.pid)) == 2  # the master and the drives
     proc.kill()
     proc.communicate(timeout=30)
