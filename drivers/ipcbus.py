@@ -10,8 +10,10 @@ Topology: one ``server`` bus (the simulated cell) creates the socket; ``client``
 it. A frame sent by the server reaches every client; a frame sent by a client reaches the server
 and every other client: every bus sees every other bus's frames, as on a CAN bus, and never its
 own (no ``receive_own_messages``). Like ``virtual`` it has no bitrate, arbitration or loss;
-frames keep their order per sender. Frames are packed with :data:`FRAME` (one seqpacket each);
-the receive timestamp is the receiver's ``time.time()``, as the virtual bus does.
+frames keep their order per sender. Frames are packed with :data:`FRAME` (one seqpacket each).
+A received frame's timestamp is the sender's ``time.time()`` when it sent it, as on the virtual
+bus: the instant a frame is on the wire, which a CAN interface stamps in hardware, not when a
+busy reader thread gets round to it.
 
 A bus that does not read loses frames, as a CAN controller whose receive buffer overflows: sends
 never block (a full socket buffer drops the frame for that receiver and counts it in
@@ -38,8 +40,8 @@ from drivegain.unixsock import NotASocket, SocketInUse, bind_private
 
 #: python-can interface name of this bus.
 INTERFACE = "drivegain-ipc"
-#: Wire format of one frame: arbitration id, flags, DLC, 8 data bytes.
-FRAME = struct.Struct("<IBB8s")
+#: Wire format of one frame: send time (s since the epoch), arbitration id, flags, DLC, 8 bytes.
+FRAME = struct.Struct("<dIBB8s")
 _EXTENDED, _REMOTE, _ERROR = 1, 2, 4
 #: How long a client retries connecting to a server that is not listening yet, s.
 CONNECT_TIMEOUT_S = 5.0
@@ -56,13 +58,13 @@ def _pack(msg: can.Message) -> bytes:
         | (_REMOTE if msg.is_remote_frame else 0)
         | (_ERROR if msg.is_error_frame else 0)
     )
-    return FRAME.pack(msg.arbitration_id, flags, msg.dlc, bytes(msg.data))
+    return FRAME.pack(time.time(), msg.arbitration_id, flags, msg.dlc, bytes(msg.data))
 
 
 def _unpack(frame: bytes, channel: str) -> can.Message:
-    can_id, flags, dlc, data = FRAME.unpack(frame)
+    sent, can_id, flags, dlc, data = FRAME.unpack(frame)
     return can.Message(
-        timestamp=time.time(),
+        timestamp=sent,
         arbitration_id=can_id,
         is_extended_id=bool(flags & _EXTENDED),
         is_remote_frame=bool(flags & _REMOTE),
