@@ -110,6 +110,17 @@ def test_frame_kinds_survive_the_trip(network: Network) -> None:
             assert bytes(got.data) == bytes(m.data)
 
 
+def test_a_frame_is_stamped_when_it_was_sent(network: Network) -> None:
+    """As on the virtual bus (and a CAN interface's hardware stamp): not when it was read."""
+    server, (client,) = network(1)
+    before = time.time()
+    client.send(_msg(0x80, b"\x01"))
+    after = time.time()
+    time.sleep(0.05)  # a reader that gets round to it late
+    got = server.recv(1.0)
+    assert got is not None and before <= got.timestamp <= after
+
+
 def test_order_is_kept_per_sender(network: Network) -> None:
     server, (client,) = network(1)
     for k in range(500):
