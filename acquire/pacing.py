@@ -1,9 +1,11 @@
 """When to send the next SYNC: absolute deadlines (``realtime``) or at once (``lockstep``).
 
 Realtime deadlines are absolute (``t0 + k·period`` on the monotonic clock), so sleep errors do not
-accumulate. A cycle that starts more than one full period late is an overrun: the schedule is
-re-anchored at the present (no burst of catch-up SYNCs, which a drive in cyclic synchronous mode
-would misread as a huge velocity) and the overrun is counted.
+accumulate. A cycle that starts more than a quarter of a period late moves the schedule to the
+present: keeping the old one would shorten the next intervals, and a drive in cyclic synchronous
+position mode, which reaches each target one period after its SYNC, would fall behind and then
+catch up faster than the trajectory (on a trajectory near the velocity limits, a speed fault).
+More than one full period late is also counted as an overrun.
 """
 
 from __future__ import annotations
@@ -68,10 +70,12 @@ class RealtimePacer:
 
     def __init__(self, period_s: float, stats: LoopStats, spin_s: float = 0.0):
         self.period_ns = round(period_s * 1e9)
+        #: Lateness that moves the schedule to the present, ns.
+        self.reanchor_ns = self.period_ns // 4
         self.stats = stats
         self.spin_ns = round(spin_s * 1e9)
         self._t0 = 0
-        self._offset = 0  # cycles skipped by re-anchoring
+        self._offset = 0  # schedule shift from re-anchoring, ns
         self._wall_minus_mono = 0
         self.consecutive_overruns = 0
 
@@ -84,7 +88,7 @@ class RealtimePacer:
 
     def deadline_ns(self, cycle: int) -> int:
         """Monotonic deadline of ``cycle``, ns."""
-        return self._t0 + (cycle + self._offset) * self.period_ns
+        return self._t0 + cycle * self.period_ns + self._offset
 
     def wait(self, cycle: int) -> int:
         deadline = self.deadline_ns(cycle)
@@ -98,13 +102,13 @@ class RealtimePacer:
         now = time.monotonic_ns()
         late = now - deadline
         if late > self.period_ns:
-            # missed a whole period: re-anchor so that this cycle is on time from now on
             self.stats.overruns += 1
             self.consecutive_overruns += 1
-            self._offset += late // self.period_ns
-            late = now - self.deadline_ns(cycle)
         else:
             self.consecutive_overruns = 0
+        if late > self.reanchor_ns:
+            # this cycle is on time from now on; the next one a full period later
+            self._offset += late
         self.stats.wake_late.add(late)
         return now + self._wall_minus_mono
 

@@ -434,9 +434,10 @@ class Session:
                     f"{pacer.consecutive_overruns} consecutive cycles missed their deadline "
                     f"by more than one period (cycle {k})"
                 )
-            sent = time.monotonic_ns()
-            interval_s = (sent - last_send) / 1e9 if k > 0 and not lockstep else None
             sample = self.master.cycle(q_sp)
+            # between the SYNCs themselves (a stall before this SYNC went out counts)
+            sent = round(sample.sync_monotonic_s * 1e9)
+            interval_s = (sent - last_send) / 1e9 if k > 0 and not lockstep else None
             self.stats.cycles += 1
             self.stats.service.add(round(sample.latency_s * 1e9))
             if sample.latency_s > cfg.period_s:

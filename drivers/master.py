@@ -15,6 +15,7 @@ TPDOs (collected per cycle and tagged by the SYNC counter echoed by the drives),
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import struct
 import threading
@@ -124,6 +125,8 @@ class CycleSample:
         the drive does not echo it), ``target`` (counts sent in the RPDO).
     latency_s
         SYNC sent to last TPDO received, s.
+    sync_monotonic_s
+        Monotonic time the SYNC was sent (``time.monotonic()``), s: for intervals between SYNCs.
     """
 
     cycle: int
@@ -133,6 +136,7 @@ class CycleSample:
     current: np.ndarray
     raw: dict[str, list[int]]
     latency_s: float = 0.0
+    sync_monotonic_s: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -723,7 +727,8 @@ class Master:
                             state=d.state.name if d.state else None,
                             code=int(ob.EmcyCode.PDO_TIMEOUT),
                         )
-        return self._decode(cycle, sync_ns, counter, frames, counts, last - t_sync)
+        sample = self._decode(cycle, sync_ns, counter, frames, counts, last - t_sync)
+        return dataclasses.replace(sample, sync_monotonic_s=t_sync)
 
     def _decode(
         self,

@@ -17,6 +17,7 @@ by its brake (its motor coordinate is locked; braking is instantaneous).
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass
 from enum import IntEnum
 
@@ -34,6 +35,9 @@ from drivegain.identify.params import (
     truth_vector,
     with_payload,
 )
+
+#: Internal steps of motor state kept for :meth:`RobotPhysics.motor_state_at` (32 ms at 0.5 ms).
+RECENT_STEPS = 64
 
 
 class MotorMode(IntEnum):
@@ -247,6 +251,9 @@ class RobotPhysics:
         self._prev_meas = self._measured()
         self._pending: StepOutput | None = None
         self._pending_loop: tuple[np.ndarray, np.ndarray] = (np.zeros(self.n), self._prev_meas)
+        # Motor angles and speeds at the start of the last steps, by step index: what a drive
+        # latched at a SYNC that the realtime integrator has already run past.
+        self._recent: deque[tuple[int, np.ndarray, np.ndarray]] = deque(maxlen=RECENT_STEPS)
         self._update_masks()
 
     # --- observation ------------------------------------------------------------------------
@@ -260,6 +267,27 @@ class RobotPhysics:
 
     def motor_velocities(self) -> np.ndarray:
         return self.k @ self.qd
+
+    def motor_state_at(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """Motor angles (rad) and speeds (rad/s) at simulated time ``t`` (s, at most now).
+
+        Interpolated linearly between the internal steps kept (``RECENT_STEPS`` back); the
+        present state for ``t`` now or later, the oldest kept for anything older.
+        """
+        recent = self._recent
+        if t >= self.time_s or not recent:
+            return self.motor_positions(), self.motor_velocities()
+        x = t / self.dt
+        later = (self.step_index, self.motor_positions(), self.motor_velocities())
+        for entry in reversed(recent):
+            if entry[0] <= x:
+                w = (x - entry[0]) / (later[0] - entry[0])
+                return (
+                    entry[1] + w * (later[1] - entry[1]),
+                    entry[2] + w * (later[2] - entry[2]),
+                )
+            later = entry
+        return recent[0][1], recent[0][2]
 
     def encoder_counts(self) -> np.ndarray:
         """Encoder readings (counts, int64) of every motor."""
@@ -412,7 +440,9 @@ class RobotPhysics:
                 self.step_index += remaining
                 self._prev_meas = self._measured()
                 self._pending = None
+                self._recent.clear()  # nothing moved: the present state is every recent one
                 return
+            self._recent.append((self.step_index, self.k @ self.q, self.k @ self.qd))
             out = self.evaluate()
             ev, meas = self._pending_loop
             # Conditional integration: the integral holds while the current saturates.

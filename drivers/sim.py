@@ -556,18 +556,25 @@ class SimulatedCell:
 
     # --- SYNC -------------------------------------------------------------------------------------
     def _on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
-        self.guard(self._sync, bytes(data))
+        self.guard(self._sync, bytes(data), timestamp)
 
-    def _sync(self, data: bytes) -> None:
+    def _sync(self, data: bytes, timestamp: float | None = None) -> None:
         network = self._network
         if network is None:
             return
         counter = data[0] if data else 0
         ph = self.physics
+        latched: float | None = None  # simulated time of the SYNC instant, s
         if self.sim.clock == "lockstep":
             ph.advance(self.substeps)
         else:
             self.catch_up()
+            if timestamp is not None:
+                # The bus stamps a SYNC when it was sent; this thread may run later (other
+                # threads, the scheduler) and the integrator has gone on meanwhile. A drive
+                # latches its position at the SYNC: report that one, or the master sees speeds
+                # scaled by this thread's jitter.
+                latched = timestamp - time.time() + (time.monotonic() - self._t0)
         if self._t_first is None:
             self._t_first = ph.time_s
         sim_t = ph.time_s - self._t_first
@@ -593,7 +600,7 @@ class SimulatedCell:
             drive.check_following_error(int(fe_counts[drive.joint]), sim_t)
         out = ph.evaluate()  # again: a fault just raised brakes a motor
         i_mean, tau_mean = ph.take_period_means()
-        self._publish_samples(i_mean)
+        self._publish_samples(i_mean, latched)
         with self._lock:
             self._history.append(
                 (
@@ -634,18 +641,24 @@ class SimulatedCell:
         if self._network is not None:
             self._network.send_message(cob_id, payload)
 
-    def _publish_samples(self, i_mean: np.ndarray | None = None) -> None:
+    def _publish_samples(self, i_mean: np.ndarray | None = None, at: float | None = None) -> None:
         """Measured values every drive reports (SDO reads and TPDOs) at this instant.
 
         ``i_mean`` is the current reference averaged over the SYNC period just ended (A); the
         torque demand reports it. Outside SYNC (start-up) the instantaneous value is used.
+        ``at``: position and speed are those latched at that simulated time (the SYNC instant,
+        s) rather than the present ones.
         """
         ph = self.physics
         out = ph.evaluate()
         if i_mean is None:
             i_mean = out.current_reference
-        counts = ph.encoder_counts()
-        vel = np.rint(ph.motor_velocities() * self._cpr).astype(np.int64)
+        if at is None:
+            xm, xmd = ph.motor_positions(), ph.motor_velocities()
+        else:
+            xm, xmd = ph.motor_state_at(at)
+        counts = np.rint(xm * ph.cpr).astype(np.int64)
+        vel = np.rint(xmd * self._cpr).astype(np.int64)
         demand = np.rint(out.setpoint * self._cpr).astype(np.int64)
         fe = np.rint(out.following_error * self._cpr).astype(np.int64)
         for drive in self.drives.values():

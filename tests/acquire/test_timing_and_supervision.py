@@ -70,6 +70,27 @@ def test_realtime_overrun_reanchors_without_a_burst(clock: FakeClock) -> None:
     assert p.consecutive_overruns == 0
 
 
+def test_a_late_cycle_moves_the_schedule_rather_than_shortening_the_next(
+    clock: FakeClock,
+) -> None:
+    """2 ms late (less than a period, more than a quarter of one): not an overrun, but the next
+    SYNC still comes a full period later. Under the absolute schedule it would come after 2 ms,
+    and the drives, each reaching its target a period after its SYNC, would fall behind, then
+    catch up faster than the trajectory."""
+    stats = LoopStats(period_s=0.004, clock="realtime")
+    p = RealtimePacer(0.004, stats)
+    p.start()
+    p.wait(0)
+    clock.mono += 6_000_000  # the cycle's work took 6 ms
+    p.wait(1)
+    woke = clock.mono
+    assert stats.overruns == 0
+    clock.mono += 1_000_000
+    p.wait(2)
+    assert clock.mono - woke == pytest.approx(4_000_000, abs=100_000)
+    assert stats.wake_late.quantile(1.0) == pytest.approx(2_000_000, rel=0.05)
+
+
 def test_lockstep_log_times_are_simulated() -> None:
     stats = LoopStats(period_s=0.002, clock="lockstep")
     p = LockstepPacer(0.002, stats)

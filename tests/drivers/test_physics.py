@@ -7,6 +7,7 @@ import pytest
 
 from drivegain.config import load_payload, load_truth, resource_path
 from drivegain.drivers.physics import (
+    RECENT_STEPS,
     Dynamics,
     MotorMode,
     RobotPhysics,
@@ -116,3 +117,29 @@ def test_encoder_counts_are_quantised_motor_angles(tx40, truth):
     expected = np.rint(tx40.transmission() @ q0 * cpr / (2 * np.pi))
     np.testing.assert_array_equal(counts, expected)
     assert counts[5] == round(32 * (-0.5 + 0.6) * 65536 / (2 * np.pi))
+
+
+def test_motor_state_at_a_past_instant_interpolates_the_steps_taken(tx40, truth):
+    """What a drive latched at a SYNC its simulator thread handles late: the state then."""
+    ph, _ = make_physics(tx40, truth)
+    for j in range(6):
+        ph.set_mode(j, MotorMode.TRACK)
+    k = tx40.transmission()
+    seen = {}
+    for step in range(120):  # joint 1 accelerating: the state changes every step
+        ph.latch_targets(k @ np.r_[0.001 * step**1.5, np.zeros(5)], np.ones(6, bool), 0.004)
+        seen[ph.step_index] = (ph.motor_positions(), ph.motor_velocities())
+        ph.advance(1)
+    now = ph.time_s
+    for back in (1, 7, 40):  # exactly on a step
+        x, xd = ph.motor_state_at(now - back * ph.dt)
+        np.testing.assert_allclose(x, seen[ph.step_index - back][0], atol=1e-12)
+        np.testing.assert_allclose(xd, seen[ph.step_index - back][1], atol=1e-12)
+    # between two steps: linear in time
+    a, b = seen[ph.step_index - 11], seen[ph.step_index - 10]
+    x, _ = ph.motor_state_at(now - 10.25 * ph.dt)
+    np.testing.assert_allclose(x, 0.25 * a[0] + 0.75 * b[0], atol=1e-12)
+    # now or later: the present state; older than the steps kept: the oldest kept
+    np.testing.assert_array_equal(ph.motor_state_at(now + 1.0)[0], ph.motor_positions())
+    oldest = ph.step_index - RECENT_STEPS
+    np.testing.assert_allclose(ph.motor_state_at(0.0)[0], seen[oldest][0], atol=1e-12)
