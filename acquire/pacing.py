@@ -5,7 +5,9 @@ accumulate. A cycle that starts more than a quarter of a period late moves the s
 present: keeping the old one would shorten the next intervals, and a drive in cyclic synchronous
 position mode, which reaches each target one period after its SYNC, would fall behind and then
 catch up faster than the trajectory (on a trajectory near the velocity limits, a speed fault).
-More than one full period late is also counted as an overrun.
+More than one full period late is also counted as an overrun. The lateness that counts is that
+of the SYNC itself: the session reports when each SYNC went out (:meth:`Pacer.sync_sent`), so a
+delay between the wake-up and the SYNC moves the schedule too.
 """
 
 from __future__ import annotations
@@ -27,6 +29,10 @@ class Pacer(Protocol):
 
     def now_log_ns(self) -> int:
         """The log time of "now" for events between cycles, ns."""
+        ...
+
+    def sync_sent(self, cycle: int, monotonic_ns: int) -> None:
+        """Cycle ``cycle``'s SYNC went out at ``monotonic_ns``."""
         ...
 
 
@@ -52,6 +58,9 @@ class LockstepPacer:
 
     def now_log_ns(self) -> int:
         return self.epoch_ns + self._cycle * self.period_ns
+
+    def sync_sent(self, cycle: int, monotonic_ns: int) -> None:
+        pass  # simulated time: a SYNC is never late
 
 
 class RealtimePacer:
@@ -106,11 +115,18 @@ class RealtimePacer:
             self.consecutive_overruns += 1
         else:
             self.consecutive_overruns = 0
+        self._reanchor(late)
+        self.stats.wake_late.add(late)
+        return now + self._wall_minus_mono
+
+    def sync_sent(self, cycle: int, monotonic_ns: int) -> None:
+        """Move the schedule if the SYNC itself went out late (after an on-time wake-up)."""
+        self._reanchor(monotonic_ns - self.deadline_ns(cycle))
+
+    def _reanchor(self, late: int) -> None:
         if late > self.reanchor_ns:
             # this cycle is on time from now on; the next one a full period later
             self._offset += late
-        self.stats.wake_late.add(late)
-        return now + self._wall_minus_mono
 
     def now_log_ns(self) -> int:
         return time.time_ns()

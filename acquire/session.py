@@ -437,6 +437,7 @@ class Session:
             sample = self.master.cycle(q_sp)
             # between the SYNCs themselves (a stall before this SYNC went out counts)
             sent = round(sample.sync_monotonic_s * 1e9)
+            pacer.sync_sent(k, sent)
             interval_s = (sent - last_send) / 1e9 if k > 0 and not lockstep else None
             self.stats.cycles += 1
             self.stats.service.add(round(sample.latency_s * 1e9))

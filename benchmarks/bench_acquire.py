@@ -32,6 +32,7 @@ turns the refusal into a printed note. Real hardware at 500 Hz needs fewer drive
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import math
@@ -40,6 +41,7 @@ import resource
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -172,17 +174,29 @@ def run_session(
     return session, wall, cpu, samples
 
 
+@contextlib.contextmanager
+def fifo(priority: int) -> Iterator[str]:
+    """SCHED_FIFO ``priority`` for this thread inside the block; yields whether it was granted."""
+    if priority <= 0:
+        yield "not asked"
+        return
+    policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except OSError as exc:
+        yield f"refused ({exc.strerror})"
+        return
+    try:
+        yield "granted"
+    finally:
+        os.sched_setscheduler(0, policy, param)
+
+
 def baseline_pacing(period_s: float, seconds: float, rt_priority: int = 0) -> LoopStats:
     """The absolute-deadline loop alone (no bus): the scheduler's own jitter."""
     stats = LoopStats(period_s=period_s, clock="realtime")
     pacer = RealtimePacer(period_s, stats)
-    policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
-    if rt_priority > 0:
-        try:
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(rt_priority))
-        except OSError:
-            pass
-    try:
+    with fifo(rt_priority):
         pacer.start()
         last = None
         for k in range(int(seconds / period_s)):
@@ -191,8 +205,6 @@ def baseline_pacing(period_s: float, seconds: float, rt_priority: int = 0) -> Lo
             if last is not None:
                 stats.sync_dev.add(abs(now - last - round(period_s * 1e9)))
             last = now
-    finally:
-        os.sched_setscheduler(0, policy, param)
     return stats
 
 
@@ -204,15 +216,8 @@ def baseline_under_load(cfg: AcquisitionConfig, seconds: float) -> LoopStats:
 
 
 def fifo_granted(priority: int) -> str:
-    if priority <= 0:
-        return "not asked"
-    policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
-    try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
-    except OSError as exc:
-        return f"refused ({exc.strerror})"
-    os.sched_setscheduler(0, policy, param)
-    return "granted"
+    with fifo(priority) as granted:
+        return granted
 
 
 def realtime(

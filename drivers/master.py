@@ -15,7 +15,6 @@ TPDOs (collected per cycle and tagged by the SYNC counter echoed by the drives),
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import logging
 import struct
 import threading
@@ -727,13 +726,13 @@ class Master:
                             state=d.state.name if d.state else None,
                             code=int(ob.EmcyCode.PDO_TIMEOUT),
                         )
-        sample = self._decode(cycle, sync_ns, counter, frames, counts, last - t_sync)
-        return dataclasses.replace(sample, sync_monotonic_s=t_sync)
+        return self._decode(cycle, sync_ns, t_sync, counter, frames, counts, last - t_sync)
 
     def _decode(
         self,
         cycle: int,
         sync_ns: int,
+        sync_mono_s: float,
         counter: int,
         frames: list[list[tuple[int, ...] | None]],
         counts: np.ndarray,
@@ -767,6 +766,7 @@ class Master:
         return CycleSample(
             cycle=cycle,
             sync_time_ns=sync_ns,
+            sync_monotonic_s=sync_mono_s,
             position=position,
             current_reference=np.array(raw["torque_demand"], dtype=float) * rated / 1000.0,
             current=np.array(raw["current"], dtype=float) * rated / 1000.0,

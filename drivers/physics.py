@@ -252,8 +252,9 @@ class RobotPhysics:
         self._pending: StepOutput | None = None
         self._pending_loop: tuple[np.ndarray, np.ndarray] = (np.zeros(self.n), self._prev_meas)
         # Motor angles and speeds at the start of the last steps, by step index: what a drive
-        # latched at a SYNC that the realtime integrator has already run past.
-        self._recent: deque[tuple[int, np.ndarray, np.ndarray]] = deque(maxlen=RECENT_STEPS)
+        # latched at a SYNC that the realtime integrator has already run past (kept only after
+        # keep_recent_steps: lockstep never needs them).
+        self._recent: deque[tuple[int, np.ndarray, np.ndarray]] = deque(maxlen=0)
         self._update_masks()
 
     # --- observation ------------------------------------------------------------------------
@@ -268,11 +269,15 @@ class RobotPhysics:
     def motor_velocities(self) -> np.ndarray:
         return self.k @ self.qd
 
+    def keep_recent_steps(self, steps: int = RECENT_STEPS) -> None:
+        """Keep the motor state of the last ``steps`` internal steps for :meth:`motor_state_at`."""
+        self._recent = deque(self._recent, maxlen=steps)
+
     def motor_state_at(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         """Motor angles (rad) and speeds (rad/s) at simulated time ``t`` (s, at most now).
 
-        Interpolated linearly between the internal steps kept (``RECENT_STEPS`` back); the
-        present state for ``t`` now or later, the oldest kept for anything older.
+        Interpolated linearly between the internal steps kept (see :meth:`keep_recent_steps`);
+        the present state for ``t`` now or later, the oldest kept for anything older.
         """
         recent = self._recent
         if t >= self.time_s or not recent:
@@ -442,7 +447,8 @@ class RobotPhysics:
                 self._pending = None
                 self._recent.clear()  # nothing moved: the present state is every recent one
                 return
-            self._recent.append((self.step_index, self.k @ self.q, self.k @ self.qd))
+            if self._recent.maxlen:
+                self._recent.append((self.step_index, self.k @ self.q, self.k @ self.qd))
             out = self.evaluate()
             ev, meas = self._pending_loop
             # Conditional integration: the integral holds while the current saturates.

@@ -432,6 +432,8 @@ class SimulatedCell:
         # Physics and drive state: bus callbacks, timer actions and the realtime integrator.
         self._physics_lock = threading.RLock()
         self._integrator: _Integrator | None = None
+        if sim.clock == "realtime":
+            self.physics.keep_recent_steps()
         self._publish_samples()
 
     # --- lifecycle -------------------------------------------------------------------------------
@@ -653,11 +655,8 @@ class SimulatedCell:
         out = ph.evaluate()
         if i_mean is None:
             i_mean = out.current_reference
-        if at is None:
-            xm, xmd = ph.motor_positions(), ph.motor_velocities()
-        else:
-            xm, xmd = ph.motor_state_at(at)
-        counts = np.rint(xm * ph.cpr).astype(np.int64)
+        xm, xmd = ph.motor_state_at(ph.time_s if at is None else at)
+        counts = np.rint(xm * self._cpr).astype(np.int64)
         vel = np.rint(xmd * self._cpr).astype(np.int64)
         demand = np.rint(out.setpoint * self._cpr).astype(np.int64)
         fe = np.rint(out.following_error * self._cpr).astype(np.int64)

@@ -91,6 +91,26 @@ def test_a_late_cycle_moves_the_schedule_rather_than_shortening_the_next(
     assert stats.wake_late.quantile(1.0) == pytest.approx(2_000_000, rel=0.05)
 
 
+def test_a_sync_sent_late_after_an_on_time_wake_up_moves_the_schedule(clock: FakeClock) -> None:
+    """The delay can come after the wake-up (a stall while the RPDOs go out): what counts is
+    when the SYNC itself was sent."""
+    stats = LoopStats(period_s=0.004, clock="realtime")
+    p = RealtimePacer(0.004, stats)
+    p.start()
+    p.wait(0)
+    clock.mono += 500_000
+    p.wait(1)  # on time
+    clock.mono += 1_500_000  # the SYNC goes out 1.5 ms after the deadline
+    sent = clock.mono
+    p.sync_sent(1, sent)
+    p.wait(2)
+    assert clock.mono - sent == pytest.approx(4_000_000, abs=100_000)
+    # a SYNC only a little late leaves the schedule alone
+    p.sync_sent(2, clock.mono + 200_000)
+    assert p.deadline_ns(3) == p.deadline_ns(2) + 4_000_000
+    assert p.deadline_ns(2) == sent + 4_000_000
+
+
 def test_lockstep_log_times_are_simulated() -> None:
     stats = LoopStats(period_s=0.002, clock="lockstep")
     p = LockstepPacer(0.002, stats)

@@ -122,6 +122,7 @@ def test_encoder_counts_are_quantised_motor_angles(tx40, truth):
 def test_motor_state_at_a_past_instant_interpolates_the_steps_taken(tx40, truth):
     """What a drive latched at a SYNC its simulator thread handles late: the state then."""
     ph, _ = make_physics(tx40, truth)
+    ph.keep_recent_steps()
     for j in range(6):
         ph.set_mode(j, MotorMode.TRACK)
     k = tx40.transmission()
