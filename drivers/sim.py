@@ -7,12 +7,17 @@ master side is exactly the code that runs on hardware. Time:
 
 - ``lockstep``: every SYNC advances the physics by exactly one period (deterministic, as fast as
   the machine allows);
-- ``realtime``: every SYNC advances the physics to the wall-clock time since :meth:`start`.
+- ``realtime``: the physics follows the wall clock since :meth:`start` (an integrator thread
+  between SYNCs); a SYNC is handled at the instant the bus stamped it with.
 
-At each SYNC the cell integrates up to the SYNC instant, triggers due faults, lets each drive apply
-the RPDO data received before the SYNC (controlword, CSP target), evaluates the drives' control
-loops at that instant, records the truth (:meth:`joint_torque_history`) and sends the TPDOs: the
-reported position, current reference and current are those of the SYNC instant.
+At each SYNC the cell integrates up to the SYNC instant, triggers due faults and sends the TPDOs
+first, with what the drives sampled at that instant (position, current, the current reference
+averaged over the period just ended, statusword), as a drive that answers the SYNC before its
+control update. Then each drive applies the RPDO data received before the SYNC (controlword, CSP
+target), the control loops are evaluated and the truth is recorded
+(:meth:`joint_torque_history`). A controlword's effect therefore shows in the next SYNC's
+statusword. In ``realtime`` the cell then computes the motion up to the next SYNC expected, so
+that the drives' answer to it waits for no physics.
 """
 
 from __future__ import annotations
@@ -283,8 +288,8 @@ class _Timer:
 
 class _Integrator:
     """Realtime clock: integrates the physics step by step as wall time passes, like a drive's
-    own control loop, so that a SYNC only has the last step to compute. Sleeping between steps
-    hands the GIL to the bus threads at once."""
+    own control loop, when no SYNC has done so ahead (see :meth:`SimulatedCell._sync`). Sleeping
+    between steps hands the GIL to the bus threads at once."""
 
     def __init__(self, cell: SimulatedCell):
         self._cell = cell
@@ -569,24 +574,34 @@ class SimulatedCell:
         latched: float | None = None  # simulated time of the SYNC instant, s
         if self.sim.clock == "lockstep":
             ph.advance(self.substeps)
-        else:
+        elif timestamp is None:
             self.catch_up()
-            if timestamp is not None:
-                # The bus stamps a SYNC when it was sent; this thread may run later (other
-                # threads, the scheduler) and the integrator has gone on meanwhile. A drive
-                # latches its position at the SYNC: report that one, or the master sees speeds
-                # scaled by this thread's jitter.
-                latched = timestamp - time.time() + (time.monotonic() - self._t0)
+        else:
+            # The bus stamps a SYNC when it was sent; this thread may run later (other threads,
+            # the scheduler). A drive latches its position at the SYNC: report that one, or the
+            # master sees speeds scaled by this thread's jitter. The physics usually covers
+            # that instant already (see the end of this method); otherwise it catches up to it,
+            # no further: the drives' answer waits for no more computation than that.
+            latched = timestamp - time.time() + (time.monotonic() - self._t0)
+            ph.advance(math.ceil(latched / self.dt) - ph.step_index)
         if self._t_first is None:
             self._t_first = ph.time_s
         sim_t = ph.time_s - self._t_first
         self._trigger_faults(sim_t, network)
 
+        # A drive transmits what it sampled at the SYNC first and runs its control update
+        # afterwards: the master gets the feedback without waiting for the drives' computation.
+        for drive in self.drives.values():
+            drive.begin_sync(counter)
+        i_mean, tau_mean = ph.take_period_means()
+        self._publish_samples(i_mean, latched)
+        self._send_tpdos(network)
+
         n = self.robot.n
         targets = np.zeros(n)
         mask = np.zeros(n, dtype=bool)
         for drive in self.drives.values():
-            target = drive.latch(counter)
+            target = drive.latch()
             if target is not None:
                 targets[drive.joint] = target / self._cpr[drive.joint]
                 mask[drive.joint] = True
@@ -601,8 +616,6 @@ class SimulatedCell:
         for drive in self.drives.values():
             drive.check_following_error(int(fe_counts[drive.joint]), sim_t)
         out = ph.evaluate()  # again: a fault just raised brakes a motor
-        i_mean, tau_mean = ph.take_period_means()
-        self._publish_samples(i_mean, latched)
         with self._lock:
             self._history.append(
                 (
@@ -621,6 +634,12 @@ class SimulatedCell:
                 )
             )
         self._sync_index += 1
+        if latched is not None:
+            # The motion up to the next SYNC depends only on what was latched now: compute it
+            # while the master is busy with this cycle, not when that SYNC comes.
+            ph.advance(math.ceil((latched + self.period_s) / self.dt) - ph.step_index)
+
+    def _send_tpdos(self, network: canopen.Network) -> None:
         for drive in self.drives.values():
             for number, cob_id, payload in drive.tpdo_frames():
                 if number in drive.tpdo_dropped:

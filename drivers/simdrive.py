@@ -3,8 +3,9 @@
 canopen's LocalNode answers SDO from its object dictionary and nothing more. This module adds what
 a drive does: NMT (boot-up, reset, start/stop, no SDO while stopped), a heartbeat producer (driven
 by the cell's timer thread), PDO mapping checks on SDO writes, RPDOs applied at the next SYNC,
-TPDOs sent on SYNC, the CiA 402 state machine driven by the controlword, fault and EMCY
-production. Physics and time live in :mod:`drivegain.drivers.sim`, which calls :meth:`on_sync`.
+TPDOs sent on SYNC (before the RPDO data is applied), the CiA 402 state machine driven by the
+controlword, fault and EMCY production. Physics and time live in :mod:`drivegain.drivers.sim`,
+which calls :meth:`begin_sync`, :meth:`tpdo_frames` and :meth:`latch` at each SYNC.
 
 Every bus callback runs in the simulated bus's notifier thread and is wrapped by the cell's guard
 (a failing callback would silently skip the other callbacks of the same CAN id).
@@ -504,14 +505,23 @@ class SimDrive:
             self.inject_fault(int(ob.EmcyCode.FOLLOWING_ERROR), emcy=True)
 
     # --- SYNC ----------------------------------------------------------------------------------
-    def latch(self, counter: int) -> int | None:
-        """Apply the synchronous RPDO data received before this SYNC; return the CSP target
-        (counts) if the drive follows targets."""
+    def begin_sync(self, counter: int) -> None:
+        """The SYNC instant, before the TPDOs go out: echo its counter, take a new PDO mapping
+        into use."""
         self.sync_echo = counter
+        if self.nmt == NmtState.OPERATIONAL and self._pdo_dirty:
+            self._activate_pdos()
+
+    def latch(self) -> int | None:
+        """Apply the synchronous RPDO data received before this SYNC; return the CSP target
+        (counts) if the drive follows targets.
+
+        Called after this SYNC's TPDOs went out, as a drive that transmits the values it sampled
+        at the SYNC at once and runs its control update afterwards: a controlword's effect shows
+        in the statusword of the next SYNC.
+        """
         if self.nmt != NmtState.OPERATIONAL:
             return None
-        if self._pdo_dirty:
-            self._activate_pdos()
         if self._rpdo_pending:
             pending, self._rpdo_pending = self._rpdo_pending, {}
             self._apply_rpdo(pending)

@@ -130,10 +130,26 @@ def wait_for_cycles(part: Path, proc: subprocess.Popen[bytes], cycles: int) -> i
     raise AssertionError("the run did not get going")
 
 
+def assert_at_rest(position: np.ndarray, period_s: float, cycles: int = 20) -> None:
+    """The logged joint positions (cycles, n), rad, show a robot at rest over the last cycles.
+
+    Held against the simulated current-loop noise, a joint at rest wanders by up to about 1e-3
+    rad over 20 cycles, so cycle-to-cycle differences cannot tell rest from slow motion. The
+    test is on the mean speed, a line fit over the last ``cycles`` (its noise: about 3e-3 rad/s
+    at 4 ms), against the 0.5 rad/s and more of the test trajectories while they move.
+    """
+    t = np.arange(cycles) * period_s
+    speed = np.polyfit(t, position[-cycles:], 1)[0]
+    assert np.all(np.abs(speed) < 0.05), f"still moving: {speed} rad/s"
+
+
 @pytest.fixture
 def acquire_cli() -> SimpleNamespace:
-    """``start`` and ``wait_for_cycles`` of a ``drivegain acquire`` subprocess."""
-    return SimpleNamespace(start=start_acquire, wait_for_cycles=wait_for_cycles)
+    """``start`` and ``wait_for_cycles`` of a ``drivegain acquire`` subprocess, and
+    ``assert_at_rest`` for its log."""
+    return SimpleNamespace(
+        start=start_acquire, wait_for_cycles=wait_for_cycles, assert_at_rest=assert_at_rest
+    )
 
 
 def _leaky_threads() -> set[threading.Thread]:

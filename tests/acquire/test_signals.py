@@ -8,6 +8,7 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 
 from drivegain.config import load_robot, resource_path
 from drivegain.identify.logformat import read_run
@@ -38,8 +39,9 @@ def test_sigterm_stops_safely_and_finishes_the_log(
     a = np.diff(v, axis=0) / log.sync_period_s
     assert np.all(np.abs(a) <= robot.acceleration_limits * 1.01)
     np.testing.assert_allclose(v[-20:], 0.0, atol=1e-9)
-    # the robot itself came to rest
-    np.testing.assert_allclose(np.diff(log.position[-20:], axis=0), 0.0, atol=2e-4)
+    acquire_cli.assert_at_rest(log.position, log.sync_period_s)  # the robot itself
+    with pytest.raises(AssertionError, match="still moving"):  # and the check tells motion
+        acquire_cli.assert_at_rest(log.position[:300], log.sync_period_s)
 
 
 def test_sigkill_leaves_a_part_with_every_flushed_cycle(

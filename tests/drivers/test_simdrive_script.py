@@ -186,8 +186,13 @@ def test_synchronous_pdos(probe, cell_factory):
     probe.send(0x201, h("06 00"))  # shutdown
     assert probe.exchange(0x601, h("40 41 60 00 00 00 00 00"))[1] == h("4B 41 60 00 40 02 00 00")
     probe.send(0x080, h("06"))
+    # The TPDOs carry what the drive sampled at the SYNC, before it applied the RPDO.
+    assert probe.recv() == (0x181, h("40 02 00 00 00 00"))
+    assert probe.recv() == (0x281, h("40 02 06"))
+    assert probe.exchange(0x601, h("40 41 60 00 00 00 00 00"))[1] == h("4B 41 60 00 31 02 00 00")
+    probe.send(0x080, h("07"))
     assert probe.recv() == (0x181, h("31 02 00 00 00 00"))  # READY_TO_SWITCH_ON
-    assert probe.recv() == (0x281, h("31 02 06"))
+    assert probe.recv() == (0x281, h("31 02 07"))
 
 
 def test_emcy_fault_and_fault_reset(probe, cell_factory):
