@@ -498,6 +498,12 @@ class _Kernel:
         self.work = np.zeros((n_rows, chunk + _ROW_PAD))[:, :chunk]
         self.n_temp = n_rows - 5 * n
         self._full: tuple[list[tuple[Callable[..., Any], list[Any]]], list[Any]] | None = None
+        #: The last partial chunk's binding, by width: callers tend to repeat their sample
+        #: count, and binding takes about 0.9 ms (0.04 µs per sample of 20 000).
+        self._part: tuple[int, tuple[list[tuple[Callable[..., Any], list[Any]]], list[Any]]] = (
+            0,
+            ([], []),
+        )
 
     def bind(self, m: int) -> tuple[list[tuple[Callable[..., Any], list[Any]]], list[Any]]:
         """The operations on the first ``m`` work columns, and where output views go.
@@ -536,7 +542,12 @@ class _Kernel:
         try:
             for c0 in range(0, q.shape[0], chunk):
                 m = min(chunk, q.shape[0] - c0)
-                ops, sites = self._full if m == chunk else self.bind(m)
+                if m == chunk:
+                    ops, sites = self._full
+                else:
+                    if self._part[0] != m:
+                        self._part = (m, self.bind(m))
+                    ops, sites = self._part[1]
                 block = out[:, c0 : c0 + m]
                 for args, pos, e in sites:
                     args[pos] = block[e]
@@ -547,8 +558,8 @@ class _Kernel:
                 for f, args in ops:
                     f(*args)
         finally:
-            for args, pos, _ in self._full[1]:  # drop the views: they would keep ``out`` alive
-                args[pos] = None
+            for args, pos, _ in (*self._full[1], *self._part[1][1]):
+                args[pos] = None  # drop the views: they would keep ``out`` alive
 
 
 _CACHE: dict[int, tuple[weakref.ref[RobotModel], dict[tuple[Any, ...], Any]]] = {}

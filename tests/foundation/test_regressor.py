@@ -345,7 +345,13 @@ def test_output_is_fresh_and_not_held(tx40: RobotModel) -> None:
     np.testing.assert_array_equal(a, b)
     a[...] = np.nan  # writable, and writing it changes nothing the next call sees
     np.testing.assert_array_equal(reg.standard_regressor(tx40, q, qd, qdd), b)
+    # Another last-chunk width (its binding is cached), then the first one again.
+    q9, qd9, qdd9 = random_states(tx40.robot, reg.CHUNK + 9, rng)
+    c = reg.standard_regressor(tx40, q9, qd9, qdd9)
+    np.testing.assert_array_equal(reg.standard_regressor(tx40, q, qd, qdd), b)
+    np.testing.assert_array_equal(reg.standard_regressor(tx40, q9[:7], qd9[:7], qdd9[:7]), c[:7])
     for store in reg._CACHE.values():
         for key, kern in store[1].items():
             if key[0] == "kernel" and kern._full is not None:
-                assert all(args[pos] is None for args, pos, _ in kern._full[1])
+                held = [*kern._full[1], *kern._part[1][1]]
+                assert all(args[pos] is None for args, pos, _ in held)
