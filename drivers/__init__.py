@@ -5,5 +5,6 @@ Modules: :mod:`.bus` (python-can bus from the ``[bus]`` table, bus-load arithmet
 :mod:`.master` (the master: boot, enable, cyclic exchange, supervision), :mod:`.sim` (the
 simulated cell: drives + physics on a CAN channel, ``[simulation]`` table), :mod:`.simdrive`
 (one simulated drive), :mod:`.physics` (forward dynamics and drive control loops),
-:mod:`.faults` (injectable faults). Import the module you need: this package imports nothing.
+:mod:`.faults` (injectable faults), :mod:`.gcfreeze` (short garbage-collector pauses while drives
+are supervised). Import the module you need: this package imports nothing.
 """

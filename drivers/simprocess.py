@@ -24,6 +24,7 @@ from types import TracebackType
 
 from drivegain import errors as errs
 from drivegain.config.robot import Robot
+from drivegain.drivers import gcfreeze
 from drivegain.drivers.bus import BusConfig
 from drivegain.drivers.ipcbus import INTERFACE
 from drivegain.drivers.sim import FaultRecord, SimConfig, SimulatedCell
@@ -51,6 +52,7 @@ def _serve(
     try:
         cell = SimulatedCell(robot, bus_cfg, sim, period_s, eds=eds)
         cell.start()
+        gcfreeze.hold()  # for the child's life: its drives answer within the master's time-outs
     except errs.DrivegainError as exc:
         conn.send(("error", type(exc).__name__, str(exc)))
         return

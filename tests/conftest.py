@@ -56,6 +56,8 @@ def _no_leaked_bus_or_thread():
 
     threads_before = set(threading.enumerate())
     buses_before = _virtual_bus_counts()
+    freeze = sys.modules.get("drivegain.drivers.gcfreeze")
+    holds_before = freeze.holders() if freeze is not None else 0
     yield
     deadline = time.monotonic() + _LEAK_GRACE_S
     while True:
@@ -76,7 +78,11 @@ def _no_leaked_bus_or_thread():
         problems_ipc = []
     simproc = sys.modules.get("drivegain.drivers.simprocess")
     children = [c.pid for c in simproc.RUNNING] if simproc is not None else []
+    freeze = sys.modules.get("drivegain.drivers.gcfreeze")
+    holds = freeze.holders() - holds_before if freeze is not None else 0
     problems = []
+    if holds:
+        problems.append(f"{holds} garbage-collector freeze(s) left held (a master not closed)")
     if problems_ipc:
         problems.append(f"drivegain IPC bus(es) left open: {problems_ipc}")
     if children:
