@@ -201,8 +201,8 @@ class Master:
     Notes
     -----
     From :meth:`boot` to :meth:`close` the master holds :mod:`.gcfreeze`: full collections of
-    the garbage collector, which walk the whole process and took up to 0.26 s here, would
-    otherwise stall TPDO collection and heartbeat supervision for longer than their time-outs.
+    the garbage collector walk the whole process (0.1-0.26 s measured in the test suite) and
+    would otherwise stall TPDO collection and heartbeat supervision beyond their time-outs.
     """
 
     def __init__(
