@@ -22,8 +22,12 @@ from drivegain.drivers.simprocess import SimulatedCellProcess
 from drivegain.errors import BusError, ConfigError
 from drivegain.identify.logformat import read_run
 
-#: A stalled shared machine must not turn a late TPDO into a fault in these tests.
-RELAXED = "tpdo_timeout_s = 0.5"
+#: These tests are about processes and signals, not timing: a stalled shared machine must not
+#: turn a late TPDO or a run of late cycles into a fault (at 250 Hz on 2 busy vCPUs, 4 cycles in
+#: a row more than a period late stopped a run at cycle 316 in CI). Overrun supervision itself
+#: is tested on a fake clock (test_timing_and_supervision.py).
+TOLERATED_OVERRUNS = 1_000_000
+RELAXED = f"tpdo_timeout_s = 0.5\nmax_overruns = {TOLERATED_OVERRUNS}"
 
 
 def _group_alive(pgid: int) -> list[int]:
@@ -67,11 +71,41 @@ def test_realtime_run_with_the_drives_in_a_child_process(
     assert not Path(cfg.bus.channel).exists()  # the child removed its socket
 
 
+def _relaxed_copy_of_shipped(name: str, dest: Path) -> Path:
+    """The shipped config ``name`` with its relative files made absolute and timing relaxed."""
+    overrides = {"tpdo_timeout_s": "0.5", "max_overruns": str(TOLERATED_OVERRUNS)}
+    lines = resource_path(name).read_text().splitlines()
+    assert lines.count("[acquisition]") == 1, f"{name}: expected one [acquisition] table"
+    out = []
+    for line in lines:
+        key, _, value = (part.strip() for part in line.partition("="))
+        if key in overrides:
+            continue
+        if key in ("robot", "truth"):
+            line = f'{key} = "{resource_path(value.split("#", 1)[0].strip().strip(chr(34)))}"'
+        out.append(line)
+        if line == "[acquisition]":
+            out += [f"{k} = {v}" for k, v in overrides.items()]
+    dest.write_text("\n".join(out) + "\n")
+    cfg = load_acquisition_config(dest)
+    shipped = load_acquisition_config(resource_path(name))
+    # the copy differs from the shipped config in its timing supervision only
+    assert cfg.supervision.max_overruns == TOLERATED_OVERRUNS and cfg.tpdo_timeout_s == 0.5
+    assert (cfg.robot_path, cfg.period_s, cfg.bus, cfg.rt_priority) == (
+        shipped.robot_path,
+        shipped.period_s,
+        shipped.bus,
+        shipped.rt_priority,
+    )
+    assert cfg.simulation == shipped.simulation
+    return dest
+
+
 def test_the_shipped_realtime_config_runs(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, short_trajectory: Path
 ) -> None:
     monkeypatch.chdir(tmp_path)  # its bus socket is relative to the working directory
-    config = resource_path("acquire-sim-realtime.toml")
+    config = _relaxed_copy_of_shipped("acquire-sim-realtime.toml", tmp_path / "rt.toml")
     args = ["acquire", "--config", str(config), "--trajectory", str(short_trajectory)]
     status = main([*args, "--out", "run.mcap"])
     assert status == 0

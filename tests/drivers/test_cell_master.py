@@ -118,11 +118,17 @@ def test_realtime_clock_follows_the_wall_clock(tx40, channel, rig_factory):
             time.sleep(max(0.0, next_t - time.monotonic()))
         history = rig.cell.joint_torque_history()
     sync_s = np.array([s.sync_time_ns for s in samples]) * 1e-9
-    # Simulated time between SYNCs = wall time between their sending, to an internal step, or
-    # by as much as a SYNC comes early after a late one (the drives compute a period's motion
-    # ahead, when they have answered the SYNC before it). Seen: 0.5-0.7 ms on a quiet machine.
-    np.testing.assert_allclose(np.diff(history.time_s), np.diff(sync_s), atol=0.015)
-    assert history.time_s[31] - history.time_s[30] > 0.1 - PERIOD - rig.cell.dt
+    # Simulated minus wall time at each SYNC, about a common offset. The simulated clock reads
+    # the wall clock to an internal step when the drives answer a SYNC, so a drive thread held up
+    # by a busy machine shows as one outlier (16 ms seen with both cores saturated), not as drift.
+    # Seen on a quiet machine: within 0.5-0.7 ms.
+    lag = history.time_s - sync_s
+    lag -= np.median(lag)
+    assert np.mean(np.abs(lag) < 0.005) >= 0.8, lag
+    # The simulation went on through the pause: the clocks agree as well after it as before it
+    # (a simulated clock that missed the 0.1 s pause would differ by 0.1 s afterwards).
+    assert abs(np.median(lag[31:]) - np.median(lag[:31])) < 0.005, lag
+    assert sync_s[31] - sync_s[30] > 0.1
 
 
 def test_quick_stop_brings_a_moving_robot_to_rest(tx40, channel, rig_factory):
