@@ -500,8 +500,12 @@ class SimulatedCell:
             return list(self._fault_log)
 
     def joint_torque_history(self) -> SimHistory:
-        """The simulated truth at every SYNC so far (the last ``history_s`` seconds)."""
-        with self._lock:
+        """The simulated truth at every SYNC so far (the last ``history_s`` seconds).
+
+        A SYNC whose TPDOs the master has received is included: its row is written after the
+        TPDOs are sent (the drives answer first), so this waits for a SYNC still being handled.
+        """
+        with self._physics_lock, self._lock:
             rows = list(self._history)
         n = self.robot.n
         if not rows:
