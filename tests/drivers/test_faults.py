@@ -167,4 +167,8 @@ def test_power_loss_of_every_drive_is_noticed_and_close_does_not_hang(tx40, chan
         closing = time.monotonic() - start
     assert info.value.code == 0x8130 and info.value.node in tx40.node_ids
     assert noticed <= TIMEOUTS.heartbeat_s + SLACK_S
-    assert closing < TIMEOUTS.sdo_s
+    # Each drive's heartbeat runs on its own phase, set when boot configured it, so when the
+    # first drive is noticed lost another may still be within its consumer time and gets one
+    # SDO attempt (seen on a loaded machine: 0.30 s). By then every drive is overdue and skipped:
+    # at most one SDO time-out, where waiting on every drive would take six.
+    assert closing < 2 * TIMEOUTS.sdo_s
