@@ -82,7 +82,8 @@ def _relaxed_copy_of_shipped(name: str, dest: Path) -> Path:
         if key in overrides:
             continue
         if key in ("robot", "truth"):
-            line = f'{key} = "{resource_path(value.split("#", 1)[0].strip().strip(chr(34)))}"'
+            relative = value.split("#", 1)[0].strip().strip('"')
+            line = f'{key} = "{resource_path(relative)}"'
         out.append(line)
         if line == "[acquisition]":
             out += [f"{k} = {v}" for k, v in overrides.items()]
