@@ -9,9 +9,9 @@ import numpy as np
 from drivegain.config.robot import Robot
 from drivegain.drivers.bus import BusLoad, bus_load
 from drivegain.errors import ConfigError, DataError, TrajectoryError
-from drivegain.excite.fourier import FourierTrajectory
 from drivegain.excite.limits import check_limits
 from drivegain.excite.motion import Motion
+from drivegain.formats.fourier import FourierTrajectory
 
 
 def check_bus_load(

@@ -37,7 +37,7 @@ class RecorderOverrun(RecorderError):
 
 
 class LogSink(Protocol):
-    """What the recorder needs from :class:`drivegain.identify.logformat.LogWriter`."""
+    """What the recorder needs from :class:`drivegain.formats.log.LogWriter`."""
 
     def write_joint_state(
         self,

@@ -44,8 +44,8 @@ from drivegain.drivers.objects import EmcyCode
 from drivegain.errors import DriveError, DrivegainError, InputError, OperatorStop
 from drivegain.excite.motion import Motion, Phase
 from drivegain.excite.motion import plan_stop as plan_stop_motion
-from drivegain.excite.trajectory import ExcitationFile, load_trajectory
-from drivegain.identify.logformat import LogWriter, RunMetadata, utc_now_iso
+from drivegain.excite.trajectory import ExcitationFile, load_trajectory, plan_excitation
+from drivegain.formats.log import LogWriter, RunMetadata, utc_now_iso
 
 log = logging.getLogger(__name__)
 
@@ -293,7 +293,7 @@ class Session:
         if warning and warning not in self._warnings:
             self._warnings.append(warning)
         q0 = np.asarray(self.master.read_positions(), dtype=float)
-        motion = self.prepared.excitation.plan(self.robot, q0)
+        motion = plan_excitation(self.prepared.excitation, self.robot, q0)
         check_motion(self.robot, motion, self.cfg.period_s)
         self.motion = motion
         self.duration_s = motion.duration_s + self.cfg.settle_s

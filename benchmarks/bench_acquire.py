@@ -57,8 +57,8 @@ from drivegain.config import load_robot, resource_path
 from drivegain.drivers.bus import BusConfig, BusLoad, bus_load
 from drivegain.drivers.ipcbus import INTERFACE as IPC_INTERFACE
 from drivegain.errors import ConfigError
-from drivegain.excite.fourier import FourierTrajectory
 from drivegain.excite.trajectory import save_trajectory, trajectory_document
+from drivegain.formats.fourier import FourierTrajectory
 
 
 def rss_mb() -> float:

@@ -29,6 +29,7 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 import numpy as np  # noqa: E402
 
 from drivegain.config import load_payload, load_robot, load_truth, resource_path  # noqa: E402
+from drivegain.dynamics.params import truth_vector  # noqa: E402
 from drivegain.excite.evaluate import evaluate_metrics  # noqa: E402
 from drivegain.excite.optimise import (  # noqa: E402
     ExcitationSettings,
@@ -36,7 +37,6 @@ from drivegain.excite.optimise import (  # noqa: E402
     optimise,
     plan_budget,
 )
-from drivegain.identify.params import truth_vector  # noqa: E402
 
 
 def gradient_ratio(settings: ExcitationSettings, repeats: int = 3) -> tuple[float, float, float]:

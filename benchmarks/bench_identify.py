@@ -92,8 +92,8 @@ def _baseline_seconds() -> float:
 
 def _write_sim_logs(folder: Path, seconds: float, rate: float, seed: int) -> tuple[Path, Path]:
     from drivegain.config import load_payload, load_robot, load_truth, resource_path
-    from drivegain.identify.logformat import RunMetadata, write_run
-    from drivegain.identify.model import build_model
+    from drivegain.dynamics.model import build_model
+    from drivegain.formats.log import RunMetadata, write_run
     from drivegain.identify.synth import exciting_sum_of_sines, simulate_run
 
     robot = load_robot(resource_path("tx40.toml"))
@@ -107,7 +107,7 @@ def _write_sim_logs(folder: Path, seconds: float, rate: float, seed: int) -> tup
         t = np.arange(0.0, seconds, 1.0 / rate)
         sim_parts = []
         for s in range(0, t.size, 100_000):
-            q, qd, qdd = ex.evaluate(t[s : s + 100_000])
+            q, qd, qdd = ex.evaluate(t[s : s + 100_000])[:3]
             sim_parts.append(
                 simulate_run(
                     model,
@@ -149,7 +149,7 @@ def _sim_world(seed: int):
     """Robot, model, truth, payload, bases, columns and two excitations for the studies."""
     from drivegain.config import load_payload, load_robot, load_truth, resource_path
     from drivegain.config.robot import WristFriction
-    from drivegain.identify.model import build_model
+    from drivegain.dynamics.model import build_model
     from drivegain.identify.prepare import bases_for_forms, stored_columns
     from drivegain.identify.synth import exciting_sum_of_sines
 
@@ -188,7 +188,7 @@ def _sim_pair(world, rng, seconds: float, rate: float, **noise):
     t = np.arange(0.0, seconds, 1.0 / rate)
     runs = []
     for which, pay, label in ((0, None, "unloaded"), (1, payload, "loaded")):
-        q, qd, qdd = ex[which].evaluate(t)
+        q, qd, qdd = ex[which].evaluate(t)[:3]
         sim = simulate_run(
             model, truth, q, qd, qdd, payload=pay, rng=rng, quantum=float(np.deg2rad(1e-3)), **noise
         )

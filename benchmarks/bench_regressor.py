@@ -9,7 +9,7 @@ Both sides produce the same (N, n, 86) standard regressor of the TX-40 (checked 
   ten columns into our order and the rotor-inertia, friction, offset and coupled-motor columns.
   Two ways of reordering are timed (``np.take`` then a block copy; a product with a 0/1
   placement matrix) and the ratio uses the faster one;
-- ours: ``drivegain.identify.regressor.standard_regressor`` on all samples at once.
+- ours: ``drivegain.dynamics.regressor.standard_regressor`` on all samples at once.
 
 Timings are the best of ``--repeats`` interleaved runs, in this thread's CPU time (the ratio uses
 it: the machine may be shared) and in wall-clock time; the spread of the per-repeat ratios is
@@ -31,9 +31,9 @@ import pinocchio as pin
 
 from drivegain.config import load_robot, resource_path
 from drivegain.config.robot import WristFriction
-from drivegain.identify import regressor
-from drivegain.identify.model import RobotModel, build_model
-from drivegain.identify.params import FROM_PINOCCHIO, N_PER_JOINT, n_standard
+from drivegain.dynamics import regressor
+from drivegain.dynamics.model import RobotModel, build_model
+from drivegain.dynamics.params import FROM_PINOCCHIO, N_PER_JOINT, n_standard
 
 
 def _pinocchio_rows(

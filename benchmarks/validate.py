@@ -44,9 +44,11 @@ from drivegain.config import load_payload, load_robot, load_truth, resource_path
 from drivegain.config.payload import PAYLOAD_PARAMS, Payload
 from drivegain.config.robot import Robot, WristFriction
 from drivegain.config.truth import Truth
-from drivegain.excite.fourier import FourierTrajectory
+from drivegain.dynamics.base import BaseParameters
+from drivegain.dynamics.model import RobotModel, build_model
+from drivegain.dynamics.params import truth_vector
 from drivegain.excite.trajectory import load_trajectory
-from drivegain.identify.base import BaseParameters
+from drivegain.formats.fourier import FourierTrajectory
 from drivegain.identify.blas import limited_blas_threads
 from drivegain.identify.compare import (
     GainEstimate,
@@ -56,8 +58,6 @@ from drivegain.identify.compare import (
     tls_gains,
     wtls_gains,
 )
-from drivegain.identify.model import RobotModel, build_model
-from drivegain.identify.params import truth_vector
 from drivegain.identify.prepare import (
     PreparedRun,
     bases_for_forms,
@@ -604,7 +604,7 @@ def scenario_summary(
 
 def write_logs(world: World, runs: Sequence[SimRun], folder: Path) -> list[Path]:
     """Write the simulated runs as MCAP logs (contracts §4) with the trajectory attached."""
-    from drivegain.identify.logformat import RunMetadata, write_run
+    from drivegain.formats.log import RunMetadata, write_run
 
     paths = []
     for run in runs:

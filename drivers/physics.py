@@ -1,10 +1,10 @@
 """The simulated robot behind the mocked bus: forward dynamics and the drives' control loops.
 
 One instance holds the whole arm (the drives of a coupled wrist share dynamics). Dynamics use the
-true standard parameters ``chi`` (:mod:`drivegain.identify.params`): Pinocchio's CRBA and
+true standard parameters ``chi`` (:mod:`drivegain.dynamics.params`): Pinocchio's CRBA and
 nonlinear effects on bodies built from ``chi``, plus rotor inertia, friction (the wrist form of the
 robot or of the simulation config), torque offsets and the coupled motor's terms, exactly as
-:func:`drivegain.identify.regressor.standard_regressor` models them (a test checks
+:func:`drivegain.dynamics.regressor.standard_regressor` models them (a test checks
 ``M(q) qdd + h(q, qd) == standard_regressor(q, qd, qdd) @ chi``).
 
 Each drive runs a cascaded controller on its motor at the internal step ``dt``: CSP setpoint
@@ -27,8 +27,8 @@ import pinocchio as pin
 from drivegain.config.payload import Payload
 from drivegain.config.robot import Robot, WristFriction
 from drivegain.config.truth import Truth
-from drivegain.identify.model import build_model
-from drivegain.identify.params import (
+from drivegain.dynamics.model import build_model
+from drivegain.dynamics.params import (
     N_PER_JOINT,
     inertial_slice,
     to_pinocchio_order,
@@ -94,7 +94,7 @@ class Dynamics:
     robot
         The robot description (kinematics, couplings).
     chi
-        Standard parameters (see :mod:`drivegain.identify.params`).
+        Standard parameters (see :mod:`drivegain.dynamics.params`).
     friction
         Friction form of the coupled motors; default the robot file's.
     """

@@ -13,6 +13,7 @@ import numpy as np
 from drivegain.config import load_payload, load_robot, load_truth, resource_path
 from drivegain.config.payload import Payload
 from drivegain.config.robot import Robot
+from drivegain.dynamics.params import truth_vector
 from drivegain.errors import ConfigError, InputError, TrajectoryError
 from drivegain.excite.criteria import Criterion
 from drivegain.excite.evaluate import evaluate_metrics
@@ -27,7 +28,6 @@ from drivegain.excite.optimise import (
 )
 from drivegain.excite.plot import render_motion_png
 from drivegain.excite.trajectory import save_trajectory, trajectory_document, write_atomic
-from drivegain.identify.params import truth_vector
 
 log = logging.getLogger(__name__)
 

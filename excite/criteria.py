@@ -28,11 +28,11 @@ import numpy as np
 
 from drivegain.config.payload import Payload
 from drivegain.config.robot import Robot
-from drivegain.identify.base import BaseParameters, base_parameters
-from drivegain.identify.model import RobotModel
-from drivegain.identify.params import inertial_slice, standard_names, with_payload
-from drivegain.identify.regressor import stack_joint_major
-from drivegain.identify.transmission import current_matrix, currents_for_torque
+from drivegain.dynamics.base import BaseParameters, base_parameters
+from drivegain.dynamics.model import RobotModel
+from drivegain.dynamics.params import inertial_slice, standard_names, with_payload
+from drivegain.dynamics.regressor import stack_joint_major
+from drivegain.dynamics.transmission import current_matrix, currents_for_torque
 
 #: Smallest singular value used by the criteria, relative to the largest.
 SINGULAR_FLOOR = 1e-12

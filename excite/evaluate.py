@@ -8,6 +8,9 @@ import numpy as np
 
 from drivegain.config.payload import Payload
 from drivegain.config.robot import Robot
+from drivegain.dynamics.model import build_model
+from drivegain.dynamics.params import inertial_slice
+from drivegain.dynamics.regressor import standard_regressor
 from drivegain.excite.criteria import (
     DesignModel,
     design_currents,
@@ -18,10 +21,7 @@ from drivegain.excite.criteria import (
     wtls_design,
     wtls_matrix,
 )
-from drivegain.excite.fourier import FourierTrajectory
-from drivegain.identify.model import build_model
-from drivegain.identify.params import inertial_slice
-from drivegain.identify.regressor import standard_regressor
+from drivegain.formats.fourier import FourierTrajectory
 
 #: Samples over one period for the stored metrics.
 METRIC_SAMPLES = 1000

@@ -14,112 +14,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from drivegain.config.robot import Robot
-from drivegain.errors import ConfigError, TrajectoryError
-from drivegain.excite.fourier import FourierTrajectory, basis, derivative_bounds
+from drivegain.errors import TrajectoryError
+from drivegain.formats.fourier import FourierTrajectory, basis, derivative_bounds
+from drivegain.formats.trajectory import ExcitationLimits
 
-#: Default margin kept from each position limit, rad (about 5.7°).
-POSITION_MARGIN = 0.1
-#: Default fraction of the velocity, acceleration and jerk limits the plans may use.
-DYNAMIC_FRACTION = 0.95
 #: Relative tolerance of the sample checks (ruckig reaches its limits to round-off).
 TOLERANCE = 1e-9
 
 QUANTITIES = ("position", "velocity", "acceleration", "jerk")
 UNITS = ("rad", "rad/s", "rad/s²", "rad/s³")
-
-
-@dataclass(frozen=True)
-class ExcitationLimits:
-    """Working limits, joint side, arrays of shape (n,).
-
-    Attributes
-    ----------
-    lower, upper
-        Position range, rad (the robot's range shrunk by ``position_margin``).
-    velocity, acceleration, jerk
-        Symmetric limits, rad/s, rad/s², rad/s³ (the robot's times ``fraction``).
-    position_margin
-        The margin kept from each position limit, rad.
-    fraction
-        The fraction of the robot's velocity, acceleration and jerk limits used.
-    """
-
-    lower: np.ndarray
-    upper: np.ndarray
-    velocity: np.ndarray
-    acceleration: np.ndarray
-    jerk: np.ndarray
-    position_margin: float = POSITION_MARGIN
-    fraction: float = DYNAMIC_FRACTION
-
-    @classmethod
-    def from_robot(
-        cls,
-        robot: Robot,
-        position_margin: float = POSITION_MARGIN,
-        fraction: float = DYNAMIC_FRACTION,
-    ) -> ExcitationLimits:
-        """Working limits of ``robot``.
-
-        Raises
-        ------
-        ConfigError
-            A joint's position range is not wider than twice the margin (names the robot file
-            and the joint), or the margin/fraction are out of range.
-        """
-        if not (np.isfinite(position_margin) and position_margin >= 0.0):
-            raise ConfigError(f"position margin must be >= 0 rad, got {position_margin}")
-        if not 0.0 < fraction <= 1.0:
-            raise ConfigError(f"limit fraction must be in (0, 1], got {fraction}")
-        lower = robot.lower + position_margin
-        upper = robot.upper - position_margin
-        for i, j in enumerate(robot.joints):
-            if not lower[i] < upper[i]:
-                raise ConfigError(
-                    f"{j.name}: position range {list(j.position_limits)} rad is not wider than "
-                    f"twice the margin {position_margin:g} rad kept from each limit",
-                    file=robot.source,
-                    key=f"joint[{i}].position_limits",
-                )
-        return cls(
-            lower=lower,
-            upper=upper,
-            velocity=robot.velocity_limits * fraction,
-            acceleration=robot.acceleration_limits * fraction,
-            jerk=robot.jerk_limits * fraction,
-            position_margin=float(position_margin),
-            fraction=float(fraction),
-        )
-
-    @property
-    def n(self) -> int:
-        return int(self.lower.shape[0])
-
-    @property
-    def middle(self) -> np.ndarray:
-        """Middle of each working position range, rad."""
-        return 0.5 * (self.lower + self.upper)
-
-    def symmetric(self, order: int) -> np.ndarray:
-        """The symmetric limit of derivative ``order`` (1 velocity, 2 acceleration, 3 jerk)."""
-        return (self.velocity, self.acceleration, self.jerk)[order - 1]
-
-    def to_dict(self, names: list[str]) -> dict[str, object]:
-        """JSON-ready description (stored in the trajectory file)."""
-        return {
-            "position_margin_rad": self.position_margin,
-            "fraction": self.fraction,
-            "joints": [
-                {
-                    "name": name,
-                    "position": [float(self.lower[i]), float(self.upper[i])],
-                    "velocity": float(self.velocity[i]),
-                    "acceleration": float(self.acceleration[i]),
-                    "jerk": float(self.jerk[i]),
-                }
-                for i, name in enumerate(names)
-            ],
-        }
 
 
 def check_limits(
@@ -226,7 +129,7 @@ def fourier_usage(
 
     Each derivative is sampled over one period with step ``dt``; between samples the curve
     departs from the chord by at most dt²/8·sup|x''| (the linear interpolation error bound), with
-    sup|x''| bounded analytically by :func:`~drivegain.excite.fourier.derivative_bounds`. So the
+    sup|x''| bounded analytically by :func:`~drivegain.formats.fourier.derivative_bounds`. So the
     sampled maximum plus that term bounds the true maximum over continuous time.
 
     Parameters

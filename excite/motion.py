@@ -22,7 +22,6 @@ from ruckig import ControlInterface, InputParameter, Ruckig, RuckigError, Trajec
 
 from drivegain.config.robot import Robot
 from drivegain.errors import TrajectoryError
-from drivegain.excite.fourier import FourierTrajectory
 from drivegain.excite.limits import (
     QUANTITIES,
     UNITS,
@@ -30,6 +29,7 @@ from drivegain.excite.limits import (
     check_limits,
     fourier_usage,
 )
+from drivegain.formats.fourier import FourierTrajectory
 
 log = logging.getLogger(__name__)
 

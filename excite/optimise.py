@@ -36,6 +36,8 @@ import scipy.optimize
 
 from drivegain.config.payload import Payload
 from drivegain.config.robot import Robot
+from drivegain.dynamics.model import build_model
+from drivegain.dynamics.regressor import standard_regressor
 from drivegain.errors import TrajectoryError
 from drivegain.excite.criteria import (
     Criterion,
@@ -48,10 +50,8 @@ from drivegain.excite.criteria import (
     wtls_criterion,
     wtls_design,
 )
-from drivegain.excite.fourier import FourierTrajectory, basis
 from drivegain.excite.limits import ExcitationLimits, fourier_usage, grid_constraints
-from drivegain.identify.model import build_model
-from drivegain.identify.regressor import standard_regressor
+from drivegain.formats.fourier import FourierTrajectory, basis
 
 log = logging.getLogger(__name__)
 

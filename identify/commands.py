@@ -7,10 +7,10 @@ import argparse
 import numpy as np
 
 from drivegain.config.robot import load_robot
-from drivegain.identify.base import base_parameters, random_states
-from drivegain.identify.model import build_model
-from drivegain.identify.params import standard_names
-from drivegain.identify.regressor import stack_joint_major, standard_regressor
+from drivegain.dynamics.base import base_parameters, random_states
+from drivegain.dynamics.model import build_model
+from drivegain.dynamics.params import standard_names
+from drivegain.dynamics.regressor import stack_joint_major, standard_regressor
 
 
 def model_info(args: argparse.Namespace) -> int:

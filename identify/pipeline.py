@@ -27,10 +27,10 @@ import numpy as np
 from drivegain.config._toml import Table, read_toml
 from drivegain.config.payload import Payload, load_payload
 from drivegain.config.robot import Robot, WristFriction, load_robot
+from drivegain.dynamics.model import RobotModel, build_model
 from drivegain.errors import DataError, InputError
+from drivegain.formats.log import RunLog, read_run
 from drivegain.identify.blas import limited_blas_threads
-from drivegain.identify.logformat import RunLog, read_run
-from drivegain.identify.model import RobotModel, build_model
 from drivegain.identify.prepare import (
     PreparedRun,
     bases_for_forms,

@@ -15,22 +15,21 @@ from __future__ import annotations
 
 import functools
 import itertools
-import json
 import math
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from drivegain.config.payload import Payload
 from drivegain.config.robot import Robot, WristFriction
+from drivegain.dynamics.base import BaseParameters, base_parameters, random_states
+from drivegain.dynamics.model import RobotModel, build_model
+from drivegain.dynamics.params import N_INERTIAL, N_PER_JOINT, standard_names
+from drivegain.dynamics.regressor import stack_joint_major, standard_regressor
 from drivegain.errors import DataError
-from drivegain.identify.base import BaseParameters, base_parameters, random_states
-from drivegain.identify.model import RobotModel, build_model
-from drivegain.identify.params import N_INERTIAL, N_PER_JOINT, standard_names
-from drivegain.identify.regressor import stack_joint_major, standard_regressor
+from drivegain.formats.trajectory import attached_fourier
 from drivegain.identify.signal import FilterSettings, derivatives, parallel_decimate
 
 #: Full-rate samples per regressor evaluation and least decimation chunk: the (chunk, n, 86)
@@ -527,37 +526,16 @@ def prepare_recording(
     )
 
 
-def _fourier(attachments: Mapping[str, bytes]) -> tuple[float, int] | None:
-    """(base frequency Hz, harmonics) of the excitation trajectory attached to a log, if any:
-    a JSON attachment with a ``fourier`` object (contracts §6)."""
-    for data in attachments.values():
-        try:
-            doc: Any = json.loads(data)
-        except (ValueError, UnicodeDecodeError):
-            continue
-        if not isinstance(doc, dict) or not isinstance(doc.get("fourier"), dict):
-            continue
-        fourier = doc["fourier"]
-        try:
-            f0 = float(fourier["base_frequency_hz"])
-            harmonics = max(len(row) for row in fourier["a"])
-        except (KeyError, TypeError, ValueError):
-            continue
-        if math.isfinite(f0) and f0 > 0 and harmonics > 0:
-            return f0, harmonics
-    return None
-
-
 def trajectory_bandwidth(attachments: Mapping[str, bytes]) -> float | None:
     """Highest harmonic (Hz) of the excitation trajectory attached to a log, if any."""
-    info = _fourier(attachments)
-    return None if info is None else info[0] * info[1]
+    fourier = attached_fourier(attachments)
+    return None if fourier is None else fourier.base_frequency_hz * fourier.harmonics
 
 
 def trajectory_period(attachments: Mapping[str, bytes]) -> float | None:
     """Period (s) of the excitation trajectory attached to a log, if any."""
-    info = _fourier(attachments)
-    return None if info is None else 1.0 / info[0]
+    fourier = attached_fourier(attachments)
+    return None if fourier is None else fourier.period_s
 
 
 def source_name(path: Path | str | None) -> str:

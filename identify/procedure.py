@@ -37,8 +37,8 @@ import numpy as np
 
 from drivegain.config.payload import PAYLOAD_PARAMS, Payload
 from drivegain.config.robot import Robot, WristFriction
+from drivegain.dynamics.base import BaseParameters
 from drivegain.errors import IdentificationError
-from drivegain.identify.base import BaseParameters
 from drivegain.identify.estimate import (
     LSResult,
     TLSResult,

@@ -17,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from drivegain.dynamics.base import BaseParameters
 from drivegain.errors import DataError
-from drivegain.identify.base import BaseParameters
 
 #: Pinocchio/FIGAROH parameter stems -> ours.
 _STEMS = {

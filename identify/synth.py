@@ -6,8 +6,8 @@ exactly: current references that produce the true joint torques through the true
 accelerations are returned exact (analytic), so noise-free tests can skip the filters; noisy tests
 must differentiate the quantised ``q`` instead, as the real pipeline does.
 
-Also here: a sum-of-sines excitation (the Swevers form of contracts §6) scaled into the joint
-limits, good enough to excite every base parameter in tests and benchmarks. The optimised
+Also here: a random Fourier excitation (the series of contracts §6) scaled into the joint limits,
+good enough to excite every base parameter in tests and benchmarks. The optimised
 excitation of the product lives in :mod:`drivegain.excite`.
 """
 
@@ -20,11 +20,12 @@ import numpy as np
 from drivegain.config.payload import Payload
 from drivegain.config.robot import Robot, WristFriction
 from drivegain.config.truth import Truth
-from drivegain.identify.base import BaseParameters, base_parameters
-from drivegain.identify.model import RobotModel, build_model
-from drivegain.identify.params import truth_vector, with_payload
-from drivegain.identify.regressor import standard_regressor
-from drivegain.identify.transmission import currents_for_torque, joint_torque
+from drivegain.dynamics.base import BaseParameters, base_parameters
+from drivegain.dynamics.model import RobotModel, build_model
+from drivegain.dynamics.params import truth_vector, with_payload
+from drivegain.dynamics.regressor import standard_regressor
+from drivegain.dynamics.transmission import currents_for_torque, joint_torque
+from drivegain.formats.fourier import FourierTrajectory
 
 #: Samples per regressor evaluation: bounds the (chunk, n, 86) temporary to a few tens of MB.
 CHUNK = 8192
@@ -178,33 +179,6 @@ def model_with_friction(model: RobotModel, friction: WristFriction | str) -> Rob
     return build_model(robot)
 
 
-@dataclass(frozen=True)
-class SumOfSines:
-    """Periodic excitation, joint j: q0_j + Σ_l a_jl/(ω l) sin(ω l t) − b_jl/(ω l) cos(ω l t).
-
-    This is the Swevers form of contracts §6 with ω = 2π·``base_frequency_hz``; ``a`` and ``b``
-    are (n, H) velocity amplitudes (rad/s).
-    """
-
-    base_frequency_hz: float
-    q0: np.ndarray
-    a: np.ndarray
-    b: np.ndarray
-
-    def evaluate(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Positions (rad), velocities (rad/s), accelerations (rad/s²) at times ``t`` (s)."""
-        t = np.asarray(t, dtype=float)
-        w = 2.0 * np.pi * self.base_frequency_hz
-        harm = np.arange(1, self.a.shape[1] + 1)
-        wl = w * harm  # (H,)
-        s = np.sin(np.outer(t, wl))  # (N, H)
-        c = np.cos(np.outer(t, wl))
-        q = self.q0[None, :] + s @ (self.a / wl).T - c @ (self.b / wl).T
-        qd = c @ self.a.T + s @ self.b.T
-        qdd = -s @ (self.a * wl).T + c @ (self.b * wl).T
-        return q, qd, qdd
-
-
 def scaled_sum_of_sines(
     robot: Robot,
     rng: np.random.Generator,
@@ -212,7 +186,7 @@ def scaled_sum_of_sines(
     base_frequency_hz: float = 0.1,
     harmonics: int = 5,
     margin: float = 0.8,
-) -> SumOfSines:
+) -> FourierTrajectory:
     """A random sum of sines that uses up to ``margin`` of every joint limit.
 
     Coefficients are Gaussian with amplitudes falling as 1/l; each joint is then scaled so
@@ -231,8 +205,8 @@ def scaled_sum_of_sines(
     room = np.minimum(hi - q0, q0 - lo)
     period = 1.0 / base_frequency_hz
     t = np.linspace(0.0, period, 64 * harmonics * 4, endpoint=False)
-    unit = SumOfSines(base_frequency_hz, np.zeros(n), a, b)
-    q, qd, qdd = unit.evaluate(t)
+    unit = FourierTrajectory(base_frequency_hz, np.zeros(n), a, b)
+    q, qd, qdd, _ = unit.evaluate(t)
     k = np.min(
         np.stack(
             [
@@ -246,7 +220,7 @@ def scaled_sum_of_sines(
     # Peaks between grid points exceed the sampled ones by < 1e-4 (256 points per period of
     # the highest harmonic): keep a margin on that.
     k /= 1.001
-    return SumOfSines(base_frequency_hz, q0, a * k[:, None], b * k[:, None])
+    return FourierTrajectory(base_frequency_hz, q0, a * k[:, None], b * k[:, None])
 
 
 def exciting_sum_of_sines(
@@ -258,7 +232,7 @@ def exciting_sum_of_sines(
     candidates: int = 20,
     margin: float = 0.8,
     base: BaseParameters | None = None,
-) -> SumOfSines:
+) -> FourierTrajectory:
     """The best of ``candidates`` random sums of sines by condition number of the base regressor.
 
     A cheap stand-in for the excitation optimiser, for tests and benchmarks: the condition
@@ -278,7 +252,7 @@ def exciting_sum_of_sines(
             harmonics=harmonics,
             margin=margin,
         )
-        w = standard_regressor(model, *cand.evaluate(t))
+        w = standard_regressor(model, *cand.evaluate(t)[:3])
         wb = bp.columns(w.transpose(1, 0, 2).reshape(-1, w.shape[2]))
         wb = wb / np.linalg.norm(wb, axis=0)
         cond = float(np.linalg.cond(wb))

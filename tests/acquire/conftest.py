@@ -17,9 +17,9 @@ import numpy as np
 import pytest
 
 from drivegain.config import load_robot, resource_path
-from drivegain.excite.fourier import FourierTrajectory
 from drivegain.excite.trajectory import save_trajectory, trajectory_document
-from drivegain.identify.logformat import iter_channel
+from drivegain.formats.fourier import FourierTrajectory
+from drivegain.formats.log import iter_channel
 
 _channels = itertools.count()
 

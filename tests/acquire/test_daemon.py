@@ -21,7 +21,7 @@ import pytest
 
 from drivegain.acquire.config import load_acquisition_config
 from drivegain.acquire.daemon import Daemon, read_reply, request
-from drivegain.identify.logformat import read_run
+from drivegain.formats.log import read_run
 
 
 class Notes:

@@ -19,7 +19,7 @@ from drivegain.acquire.recorder import (
     RecorderError,
     RecorderOverrun,
 )
-from drivegain.identify.logformat import LogWriter, RunMetadata, read_run
+from drivegain.formats.log import LogWriter, RunMetadata, read_run
 
 N = 6
 PERIOD = 0.004

@@ -25,8 +25,8 @@ from drivegain.cli import main
 from drivegain.config import resource_path
 from drivegain.drivers.cia402 import State
 from drivegain.errors import BusError, ConfigError, DataError, DriveError, InputError
-from drivegain.excite.trajectory import load_trajectory
-from drivegain.identify.logformat import read_run
+from drivegain.excite.trajectory import load_trajectory, plan_excitation
+from drivegain.formats.log import read_run
 
 
 def _messages(path: Path) -> dict[str, list[dict]]:
@@ -75,7 +75,7 @@ def test_run_logs_every_cycle_per_contract(
 
     # the setpoints are the planned motion (planned independently here from the start pose)
     log = read_run(out)
-    motion = load_trajectory(short_trajectory).plan(cfg.robot, log.position[0])
+    motion = plan_excitation(load_trajectory(short_trajectory), cfg.robot, log.position[0])
     q_plan, _, _ = motion.sample(log.t)
     np.testing.assert_allclose(log.setpoint, q_plan, atol=2e-4)
     # ...the robot followed them, and it ends at rest where it started

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from drivegain.config import load_robot, resource_path
-from drivegain.identify.logformat import read_run
+from drivegain.formats.log import read_run
 
 
 def test_sigterm_stops_safely_and_finishes_the_log(

@@ -20,7 +20,7 @@ from drivegain.cli import main
 from drivegain.config import resource_path
 from drivegain.drivers.simprocess import SimulatedCellProcess
 from drivegain.errors import BusError, ConfigError
-from drivegain.identify.logformat import read_run
+from drivegain.formats.log import read_run
 
 #: These tests are about processes and signals, not timing: a stalled shared machine must not
 #: turn a late TPDO or a run of late cycles into a fault (at 250 Hz on 2 busy vCPUs, 4 cycles in

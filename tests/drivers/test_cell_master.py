@@ -11,10 +11,10 @@ import numpy as np
 from drivegain.config import load_truth, resource_path
 from drivegain.drivers.master import Timeouts
 from drivegain.drivers.sim import SimConfig
-from drivegain.identify.model import build_model
-from drivegain.identify.params import truth_vector
-from drivegain.identify.regressor import standard_regressor
-from drivegain.identify.transmission import joint_torque
+from drivegain.dynamics.model import build_model
+from drivegain.dynamics.params import truth_vector
+from drivegain.dynamics.regressor import standard_regressor
+from drivegain.dynamics.transmission import joint_torque
 
 PERIOD = 0.004
 NOISE_NM = 0.5

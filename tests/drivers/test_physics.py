@@ -14,8 +14,8 @@ from drivegain.drivers.physics import (
     design_gains,
     truth_parameters,
 )
-from drivegain.identify.model import build_model
-from drivegain.identify.regressor import standard_regressor
+from drivegain.dynamics.model import build_model
+from drivegain.dynamics.regressor import standard_regressor
 
 
 @pytest.fixture(scope="module")

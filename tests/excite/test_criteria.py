@@ -7,6 +7,10 @@ import numpy as np
 import pytest
 
 from drivegain.config import load_payload, load_robot, load_truth, resource_path
+from drivegain.dynamics.base import random_states
+from drivegain.dynamics.model import build_model
+from drivegain.dynamics.params import truth_vector
+from drivegain.dynamics.regressor import stack_joint_major, standard_regressor
 from drivegain.excite.criteria import (
     Criterion,
     base_criterion,
@@ -18,10 +22,6 @@ from drivegain.excite.criteria import (
     wtls_matrix,
 )
 from drivegain.excite.optimise import ExcitationSettings, Problem
-from drivegain.identify.base import random_states
-from drivegain.identify.model import build_model
-from drivegain.identify.params import truth_vector
-from drivegain.identify.regressor import stack_joint_major, standard_regressor
 
 
 @pytest.fixture(scope="module")

@@ -8,8 +8,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from drivegain.config import load_robot, resource_path
-from drivegain.excite.fourier import FourierTrajectory, basis, derivative_bounds, start_state
 from drivegain.excite.limits import ExcitationLimits, fourier_usage
+from drivegain.formats.fourier import FourierTrajectory, basis, derivative_bounds, start_state
 
 
 def random_series(seed: int, n: int = 3, h: int = 4, f: float = 0.2) -> FourierTrajectory:

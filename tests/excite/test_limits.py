@@ -9,8 +9,8 @@ import pytest
 
 from drivegain.config import load_robot, resource_path
 from drivegain.errors import ConfigError, TrajectoryError
-from drivegain.excite.fourier import FourierTrajectory
 from drivegain.excite.limits import ExcitationLimits, check_limits, grid_constraints
+from drivegain.formats.fourier import FourierTrajectory
 
 
 @pytest.fixture(scope="module")

@@ -9,9 +9,9 @@ import pytest
 
 from drivegain.config import load_robot, resource_path
 from drivegain.errors import TrajectoryError
-from drivegain.excite.fourier import FourierTrajectory
 from drivegain.excite.limits import ExcitationLimits
 from drivegain.excite.trajectory import Phase, load_trajectory, plan_motion, plan_stop
+from drivegain.formats.fourier import FourierTrajectory
 
 
 @pytest.fixture(scope="module")

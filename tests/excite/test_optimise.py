@@ -7,6 +7,8 @@ import numpy as np
 import pytest
 
 from drivegain.config import load_robot, resource_path
+from drivegain.dynamics.model import build_model
+from drivegain.dynamics.regressor import stack_joint_major, standard_regressor
 from drivegain.excite.criteria import Criterion, design_model
 from drivegain.excite.limits import ExcitationLimits, fourier_usage
 from drivegain.excite.optimise import (
@@ -17,8 +19,6 @@ from drivegain.excite.optimise import (
     optimise,
     plan_budget,
 )
-from drivegain.identify.model import build_model
-from drivegain.identify.regressor import stack_joint_major, standard_regressor
 
 
 @pytest.fixture(scope="module")

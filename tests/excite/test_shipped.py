@@ -8,15 +8,15 @@ import numpy as np
 import pytest
 
 from drivegain.config import load_payload, load_robot, load_truth, resource_path
-from drivegain.excite.fourier import FourierTrajectory
+from drivegain.dynamics.base import base_parameters, random_states
+from drivegain.dynamics.model import build_model
+from drivegain.dynamics.params import inertial_slice, truth_vector, with_payload
+from drivegain.dynamics.regressor import stack_joint_major, standard_regressor
+from drivegain.dynamics.transmission import current_matrix, currents_for_torque
 from drivegain.excite.limits import ExcitationLimits
 from drivegain.excite.optimise import ExcitationSettings, Problem, random_trajectory
 from drivegain.excite.trajectory import load_trajectory
-from drivegain.identify.base import base_parameters, random_states
-from drivegain.identify.model import build_model
-from drivegain.identify.params import inertial_slice, truth_vector, with_payload
-from drivegain.identify.regressor import stack_joint_major, standard_regressor
-from drivegain.identify.transmission import current_matrix, currents_for_torque
+from drivegain.formats.fourier import FourierTrajectory
 
 SAMPLES = 1000
 N_RANDOM = 12

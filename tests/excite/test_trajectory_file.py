@@ -10,9 +10,9 @@ import pytest
 
 from drivegain.config import load_robot, resource_path
 from drivegain.errors import DataError
-from drivegain.excite.fourier import FourierTrajectory
 from drivegain.excite.limits import ExcitationLimits
 from drivegain.excite.trajectory import load_trajectory, save_trajectory, trajectory_document
+from drivegain.formats.fourier import FourierTrajectory
 
 
 @pytest.fixture(scope="module")

@@ -7,11 +7,11 @@ import pytest
 
 from drivegain.config import load_robot, resource_path
 from drivegain.config.robot import WristFriction
-from drivegain.identify.base import base_parameters, random_states
-from drivegain.identify.model import build_model
-from drivegain.identify.params import n_standard, standard_names
-from drivegain.identify.regressor import standard_regressor
-from drivegain.identify.transmission import (
+from drivegain.dynamics.base import base_parameters, random_states
+from drivegain.dynamics.model import build_model
+from drivegain.dynamics.params import n_standard, standard_names
+from drivegain.dynamics.regressor import standard_regressor
+from drivegain.dynamics.transmission import (
     current_matrix,
     currents_for_torque,
     joint_to_motor,

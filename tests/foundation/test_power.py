@@ -18,9 +18,9 @@ from scipy.integrate import cumulative_simpson
 
 from drivegain.config import load_robot, load_truth, resource_path
 from drivegain.config.robot import Robot, WristFriction
-from drivegain.identify.model import RobotModel, build_model
-from drivegain.identify.params import standard_names, truth_vector
-from drivegain.identify.regressor import standard_regressor
+from drivegain.dynamics.model import RobotModel, build_model
+from drivegain.dynamics.params import standard_names, truth_vector
+from drivegain.dynamics.regressor import standard_regressor
 
 DATA = Path(__file__).resolve().parents[1] / "data"
 PIN_ORDER = ("M", "MX", "MY", "MZ", "XX", "XY", "YY", "XZ", "YZ", "ZZ")

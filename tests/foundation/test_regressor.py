@@ -1,6 +1,6 @@
 """The IDIM regressor against independent inverse dynamics (Pinocchio's RNEA plus drive terms).
 
-The reference torques never go through :mod:`drivegain.identify.regressor`: the rigid body part is
+The reference torques never go through :mod:`drivegain.dynamics.regressor`: the rigid body part is
 ``pin.rnea`` on a copy of the kinematic model whose link inertias are set from the parameter
 vector, and the rotor-inertia, friction, offset and coupled-motor terms are written out below from
 docs/model.md.
@@ -17,9 +17,9 @@ import pytest
 
 from drivegain.config import load_payload, load_robot, load_truth, resource_path
 from drivegain.config.robot import Coupling, Robot, WristFriction
-from drivegain.identify import regressor as reg
-from drivegain.identify.model import RobotModel, build_model
-from drivegain.identify.params import standard_names, truth_vector
+from drivegain.dynamics import regressor as reg
+from drivegain.dynamics.model import RobotModel, build_model
+from drivegain.dynamics.params import standard_names, truth_vector
 
 DATA = Path(__file__).resolve().parents[1] / "data"
 INERTIAL = ("XX", "XY", "XZ", "YY", "YZ", "ZZ", "MX", "MY", "MZ", "M")

@@ -12,9 +12,10 @@ from drivegain.config import load_payload, load_robot, load_truth, resource_path
 from drivegain.config.payload import Payload
 from drivegain.config.robot import Robot, WristFriction
 from drivegain.config.truth import Truth
-from drivegain.identify.base import BaseParameters
+from drivegain.dynamics.base import BaseParameters
+from drivegain.dynamics.model import RobotModel, build_model
+from drivegain.formats.fourier import FourierTrajectory
 from drivegain.identify.blas import limited_blas_threads
-from drivegain.identify.model import RobotModel, build_model
 from drivegain.identify.prepare import (
     PreparedRun,
     bases_for_forms,
@@ -23,7 +24,7 @@ from drivegain.identify.prepare import (
     stored_columns,
 )
 from drivegain.identify.signal import default_filter
-from drivegain.identify.synth import SumOfSines, exciting_sum_of_sines, simulate_run
+from drivegain.identify.synth import exciting_sum_of_sines, simulate_run
 
 #: Excitation used by the simulated runs: base frequency and harmonics (bandwidth 1 Hz).
 BASE_HZ = 0.2
@@ -42,7 +43,7 @@ class World:
     validation: Payload
     bases: dict[WristFriction, BaseParameters]
     columns: tuple[str, ...]
-    excitations: tuple[SumOfSines, SumOfSines, SumOfSines]
+    excitations: tuple[FourierTrajectory, FourierTrajectory, FourierTrajectory]
 
 
 @pytest.fixture(scope="session", autouse=True)
@@ -99,7 +100,7 @@ def exact_run(world: World) -> Simulate:
         label: str = "run",
     ) -> PreparedRun:
         t = np.arange(0.0, duration, 1.0 / rate)
-        q, qd, qdd = world.excitations[which].evaluate(t)
+        q, qd, qdd = world.excitations[which].evaluate(t)[:3]
         sim = simulate_run(world.model, world.truth, q, qd, qdd, payload=payload, friction=friction)
         return prepare_exact(
             world.model,
@@ -132,7 +133,7 @@ def noisy_run(world: World) -> Simulate:
         label: str = "run",
     ) -> PreparedRun:
         t = np.arange(0.0, duration, 1.0 / rate)
-        q, qd, qdd = world.excitations[which].evaluate(t)
+        q, qd, qdd = world.excitations[which].evaluate(t)[:3]
         sim = simulate_run(
             world.model,
             world.truth,

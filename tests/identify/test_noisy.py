@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from drivegain.identify.params import truth_vector
+from drivegain.dynamics.params import truth_vector
 from drivegain.identify.procedure import (
     Options,
     Problem,

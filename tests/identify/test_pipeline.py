@@ -11,7 +11,7 @@ import pytest
 
 from drivegain.cli import main
 from drivegain.config import resource_path
-from drivegain.identify.logformat import RunMetadata, write_run
+from drivegain.formats.log import RunMetadata, write_run
 from drivegain.identify.synth import simulate_run
 
 RATE = 250.0
@@ -32,7 +32,7 @@ def _write_log(
     nan_at: int | None = None,
 ) -> Path:
     t = np.arange(0.0, seconds, 1.0 / RATE)
-    q, qd, qdd = world.excitations[which].evaluate(t)
+    q, qd, qdd = world.excitations[which].evaluate(t)[:3]
     sim = simulate_run(
         world.model,
         world.truth,

@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 
 from drivegain.config.robot import WristFriction
+from drivegain.dynamics.base import random_states
+from drivegain.dynamics.params import standard_names
+from drivegain.dynamics.regressor import stack_joint_major, standard_regressor
 from drivegain.identify import prepare
-from drivegain.identify.base import random_states
-from drivegain.identify.params import standard_names
 from drivegain.identify.prepare import (
     coupled_coulomb_columns,
     filtered_derivatives,
@@ -18,7 +19,6 @@ from drivegain.identify.prepare import (
     regressor_columns,
     trajectory_bandwidth,
 )
-from drivegain.identify.regressor import stack_joint_major, standard_regressor
 from drivegain.identify.signal import default_filter
 from drivegain.identify.synth import model_with_friction
 
@@ -57,7 +57,7 @@ def test_base_sets_reproduce_torques_and_are_minimal(world, form: WristFriction)
 def test_chunked_decimation_equals_whole_signal(world, monkeypatch) -> None:
     rate = 200.0
     t = np.arange(0.0, 60.0, 1.0 / rate)
-    q, _, _ = world.excitations[0].evaluate(t)
+    q, _, _ = world.excitations[0].evaluate(t)[:3]
     rng = np.random.default_rng(3)
     current = rng.normal(size=q.shape)
     st = default_filter(rate, 1.0)
@@ -82,7 +82,7 @@ def test_decimated_regressor_follows_the_trajectory(world) -> None:
     rate = 250.0
     t = np.arange(0.0, 20.0, 1.0 / rate)
     ex = world.excitations[1]
-    q, _, _ = ex.evaluate(t)
+    q, _, _ = ex.evaluate(t)[:3]
     st = default_filter(rate, 1.0)
     run = prepare_recording(
         world.model,
@@ -93,7 +93,7 @@ def test_decimated_regressor_follows_the_trajectory(world) -> None:
         rate_hz=rate,
         settings=st,
     )
-    qe, qde, qdde = ex.evaluate(run.t)
+    qe, qde, qdde = ex.evaluate(run.t)[:3]
     exact = regressor_columns(world.model, qe, qde, qdde, world.columns)
     # Friction sign columns switch sharply and are smoothed by the filters: compare the rest.
     smooth = [i for i, k in enumerate(world.columns) if not k.startswith(("Fc", "fcm"))]
@@ -102,7 +102,14 @@ def test_decimated_regressor_follows_the_trajectory(world) -> None:
 
 
 def test_trajectory_bandwidth_from_attachment() -> None:
-    traj = {"fourier": {"base_frequency_hz": 0.1, "a": [[0.1] * 5] * 6, "b": [[0.0] * 5] * 6}}
+    traj = {
+        "fourier": {
+            "base_frequency_hz": 0.1,
+            "q0": [0.0] * 6,
+            "a": [[0.1] * 5] * 6,
+            "b": [[0.0] * 5] * 6,
+        }
+    }
     att = {"robot.toml": b"[robot]\n", "traj.json": json.dumps(traj).encode()}
     assert trajectory_bandwidth(att) == pytest.approx(0.5)
     assert trajectory_bandwidth({"x.json": b"{not json"}) is None

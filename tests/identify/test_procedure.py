@@ -46,7 +46,7 @@ def test_noise_free_gains_and_payload_are_exact(world, exact_run, form: WristFri
     assert res.case2.relative_error < 1e-9 < res.case1.relative_error
     # The base parameters are those of the truth, regrouped.
     chi = world.bases[form].regroup(
-        __import__("drivegain.identify.params", fromlist=["x"]).truth_vector(world.robot, truth)
+        __import__("drivegain.dynamics.params", fromlist=["x"]).truth_vector(world.robot, truth)
     )
     np.testing.assert_allclose(res.case2.base, chi, rtol=1e-6, atol=1e-9)
     # The other friction form cannot fit this data exactly.

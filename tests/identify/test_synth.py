@@ -7,9 +7,9 @@ import pinocchio as pin
 import pytest
 
 from drivegain.config.robot import WristFriction
-from drivegain.identify.params import to_pinocchio_order, with_payload
+from drivegain.dynamics.params import to_pinocchio_order, with_payload
+from drivegain.dynamics.transmission import joint_torque
 from drivegain.identify.synth import quantise, scaled_sum_of_sines, simulate_run
-from drivegain.identify.transmission import joint_torque
 
 
 def _reference_torque(world, q, qd, qdd, payload, form: WristFriction) -> np.ndarray:
@@ -43,7 +43,7 @@ def _reference_torque(world, q, qd, qdd, payload, form: WristFriction) -> np.nda
 @pytest.mark.parametrize("form", list(WristFriction))
 def test_simulated_torques_match_rnea(world, form: WristFriction) -> None:
     t = np.linspace(0.0, 5.0, 40)
-    q, qd, qdd = world.excitations[0].evaluate(t)
+    q, qd, qdd = world.excitations[0].evaluate(t)[:3]
     sim = simulate_run(world.model, world.truth, q, qd, qdd, payload=world.payload, friction=form)
     ref = _reference_torque(world, q, qd, qdd, world.payload, form)
     np.testing.assert_allclose(sim.tau_true, ref, atol=1e-9 * np.abs(ref).max())
@@ -52,7 +52,7 @@ def test_simulated_torques_match_rnea(world, form: WristFriction) -> None:
 
 def test_currents_carry_the_torques_and_the_noise(world) -> None:
     t = np.arange(0.0, 4.0, 0.002)
-    q, qd, qdd = world.excitations[1].evaluate(t)
+    q, qd, qdd = world.excitations[1].evaluate(t)[:3]
     rng = np.random.default_rng(3)
     sim = simulate_run(world.model, world.truth, q, qd, qdd, torque_noise=0.05, rng=rng)
     np.testing.assert_allclose(
@@ -87,9 +87,9 @@ def test_sum_of_sines_derivatives_and_limits(world) -> None:
     ex = scaled_sum_of_sines(world.robot, rng, base_frequency_hz=0.2, harmonics=5, margin=0.8)
     h = 1e-4
     t = np.linspace(0.0, 5.0, 5001)
-    q, qd, qdd = ex.evaluate(t)
-    qp, qdp, _ = ex.evaluate(t + h)
-    qm, qdm, _ = ex.evaluate(t - h)
+    q, qd, qdd = ex.evaluate(t)[:3]
+    qp, qdp, _ = ex.evaluate(t + h)[:3]
+    qm, qdm, _ = ex.evaluate(t - h)[:3]
     np.testing.assert_allclose((qp - qm) / (2 * h), qd, atol=1e-6)
     np.testing.assert_allclose((qdp - qdm) / (2 * h), qdd, atol=1e-5)
     r = world.robot

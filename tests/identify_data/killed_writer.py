@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drivegain.identify.logformat import LogWriter, RunMetadata
+from drivegain.formats.log import LogWriter, RunMetadata
 
 N_JOINTS = 6
 PERIOD_S = 0.004

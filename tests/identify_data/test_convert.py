@@ -13,12 +13,12 @@ import pytest
 
 from drivegain.cli import main
 from drivegain.config import load_robot, resource_path
+from drivegain.dynamics.transmission import joint_to_motor, joint_torque
 from drivegain.errors import DataError, InputError
-from drivegain.identify import logformat
+from drivegain.formats import log as logformat
+from drivegain.formats.log import read_run
 from drivegain.identify.convert import convert_csv, read_csv_columns
-from drivegain.identify.logformat import read_run
 from drivegain.identify.signal import default_filter, derivatives
-from drivegain.identify.transmission import joint_to_motor, joint_torque
 
 ROBOT = resource_path("tx40.toml")
 N = np.array([32.0, 32.0, 45.0, -48.0, 45.0, 32.0])  # gear ratios of the TX-40

@@ -18,7 +18,7 @@ from mcap.writer import CompressionType, Writer
 
 from drivegain.config import resource_path
 from drivegain.errors import DataError
-from drivegain.identify.logformat import (
+from drivegain.formats.log import (
     EVENTS,
     JOINT_STATES,
     RAW,

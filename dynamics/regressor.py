@@ -31,8 +31,8 @@ from typing import Any, Literal, NamedTuple
 import numpy as np
 
 from drivegain.config.robot import WristFriction
-from drivegain.identify.model import RobotModel
-from drivegain.identify.params import N_INERTIAL, N_PER_JOINT, n_standard
+from drivegain.dynamics.model import RobotModel
+from drivegain.dynamics.params import N_INERTIAL, N_PER_JOINT, n_standard
 
 #: Samples per pass of the traced program: amortises numpy's per-call overhead (about 0.4 µs
 #: for each of the ~930 operations of the TX-40) while the ~70 work rows stay near L2 size.
@@ -674,7 +674,7 @@ def standard_regressor(
     qdd: np.ndarray,
     wrist_friction: WristFriction | str | None = None,
 ) -> np.ndarray:
-    """IDIM regressor on the standard parameters (see :mod:`drivegain.identify.params`).
+    """IDIM regressor on the standard parameters (see :mod:`drivegain.dynamics.params`).
 
     Parameters
     ----------

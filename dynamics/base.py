@@ -13,10 +13,10 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg
 
+from drivegain.dynamics.model import RobotModel
+from drivegain.dynamics.params import standard_names
+from drivegain.dynamics.regressor import stack_joint_major, standard_regressor
 from drivegain.errors import ModelError
-from drivegain.identify.model import RobotModel
-from drivegain.identify.params import standard_names
-from drivegain.identify.regressor import stack_joint_major, standard_regressor
 
 
 @dataclass(frozen=True)

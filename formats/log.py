@@ -23,6 +23,7 @@ import time
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
+from enum import StrEnum
 from pathlib import Path
 from types import TracebackType
 from typing import IO, Any
@@ -61,6 +62,14 @@ DEFAULT_CHUNK_SIZE = 1 << 20
 _MCAP_MAGIC = b"\x89MCAP0\r\n"
 # Rows per preallocated block when the message count is not known in advance.
 _BLOCK_ROWS = 16384
+
+
+class EventLevel(StrEnum):
+    """Severity of an event on ``/events`` (contracts §4): the value is what the log holds."""
+
+    INFO = "info"
+    WARNING = "warning"
+    ERROR = "error"
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,6 @@
+"""The files every stage shares, each with one reader and one writer.
+
+- :mod:`.fourier`: the finite Fourier series of an excitation (contracts §6);
+- :mod:`.trajectory`: the ``TRAJ.json`` file (contracts §6);
+- :mod:`.log`: the MCAP acquisition log (contracts §4).
+"""
