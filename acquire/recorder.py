@@ -23,7 +23,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from drivegain.errors import DrivegainError
+from drivegain.errors import DrivegainError, UsageError
 
 log = logging.getLogger(__name__)
 
@@ -37,7 +37,7 @@ class RecorderOverrun(RecorderError):
 
 
 class LogSink(Protocol):
-    """What the recorder needs from :class:`drivegain.formats.log.LogWriter`."""
+    """What the recorder needs from :class:`drivegain.formats.logwriter.LogWriter`."""
 
     def write_joint_state(
         self,
@@ -118,7 +118,7 @@ class Recorder:
 
     def __init__(self, sink: LogSink, *, capacity: int = 4096, flush_interval_s: float = 1.0):
         if capacity < 1:
-            raise ValueError("capacity must be >= 1")
+            raise UsageError("capacity must be >= 1")
         self._sink = sink
         self._queue: queue.Queue[object] = queue.Queue(maxsize=capacity)
         self._interval = float(flush_interval_s)

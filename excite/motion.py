@@ -21,7 +21,7 @@ import numpy as np
 from ruckig import ControlInterface, InputParameter, Ruckig, RuckigError, Trajectory
 
 from drivegain.config.robot import Robot
-from drivegain.errors import TrajectoryError
+from drivegain.errors import TrajectoryError, UsageError
 from drivegain.excite.limits import (
     QUANTITIES,
     UNITS,
@@ -139,7 +139,7 @@ class Motion:
         bounds = {}
         for phase, t0, seg in self.segments:
             if abs(t0 - t) > 1e-9:
-                raise ValueError(f"segment {phase.value} starts at {t0} s, expected {t} s")
+                raise UsageError(f"segment {phase.value} starts at {t0} s, expected {t} s")
             bounds[phase] = (t0, t0 + seg.duration)
             t = t0 + seg.duration
         self.duration_s = t
@@ -155,7 +155,7 @@ class Motion:
         """
         times = np.atleast_1d(np.asarray(t, dtype=float))
         if not np.all(np.isfinite(times)):
-            raise ValueError("sample times must be finite")
+            raise TrajectoryError("sample times must be finite")
         n = self.n
         q, qd, qdd = (np.empty((times.shape[0], n)) for _ in range(3))
         last = len(self.segments) - 1

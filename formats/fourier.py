@@ -15,6 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from drivegain.errors import TrajectoryError
+
 #: Highest derivative order :func:`basis` and :func:`derivative_bounds` provide (0 = position).
 MAX_ORDER = 5
 
@@ -46,14 +48,14 @@ class FourierTrajectory:
         a = np.atleast_2d(np.asarray(self.a, dtype=float))
         b = np.atleast_2d(np.asarray(self.b, dtype=float))
         if q0.ndim != 1 or a.shape != b.shape or a.shape[0] != q0.shape[0]:
-            raise ValueError(
+            raise TrajectoryError(
                 f"inconsistent shapes: q0 {q0.shape}, a {a.shape}, b {b.shape} "
                 "(expected (n,), (n, H), (n, H))"
             )
         if not self.base_frequency_hz > 0.0:
-            raise ValueError(f"base frequency must be > 0, got {self.base_frequency_hz}")
+            raise TrajectoryError(f"base frequency must be > 0, got {self.base_frequency_hz}")
         if self.periods < 1:
-            raise ValueError(f"periods must be >= 1, got {self.periods}")
+            raise TrajectoryError(f"periods must be >= 1, got {self.periods}")
         object.__setattr__(self, "q0", q0)
         object.__setattr__(self, "a", a)
         object.__setattr__(self, "b", b)
@@ -94,7 +96,7 @@ class FourierTrajectory:
         """Inverse of :meth:`coefficients` (``theta`` may be flat, joint after joint)."""
         th = np.asarray(theta, dtype=float)
         if th.ndim == 1:
-            raise ValueError("theta must have shape (n, 1 + 2H)")
+            raise TrajectoryError("theta must have shape (n, 1 + 2H)")
         h = (th.shape[1] - 1) // 2
         return cls(
             base_frequency_hz,
@@ -152,7 +154,7 @@ def basis(t: np.ndarray, omega: float, harmonics: int, order: int) -> np.ndarray
         Derivative order, 0 (position, rad) to :data:`MAX_ORDER`.
     """
     if not 0 <= order <= MAX_ORDER:
-        raise ValueError(f"order must be 0..{MAX_ORDER}, got {order}")
+        raise TrajectoryError(f"order must be 0..{MAX_ORDER}, got {order}")
     t = np.asarray(t, dtype=float).reshape(-1)
     w = omega * np.arange(1, harmonics + 1)
     phase = np.outer(t, w)

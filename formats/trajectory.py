@@ -24,7 +24,7 @@ import numpy as np
 
 from drivegain import __version__
 from drivegain.config.robot import Robot
-from drivegain.errors import ConfigError, DataError
+from drivegain.errors import ConfigError, DataError, TrajectoryError
 from drivegain.formats.fourier import FourierTrajectory, start_state
 
 FORMAT_VERSION = 1
@@ -217,11 +217,14 @@ def save_trajectory(path: str | Path, document: dict[str, Any]) -> Path:
 
     Raises
     ------
-    ValueError
-        The document holds a non-finite number (JSON has none).
+    TrajectoryError
+        The document holds a non-finite number (JSON has none); nothing is written.
     """
     p = Path(path)
-    text = _dumps(document, 0) + "\n"
+    try:
+        text = _dumps(document, 0) + "\n"
+    except ValueError as exc:
+        raise TrajectoryError(f"{p}: cannot be written: {exc}") from None
     return write_atomic(p, text.encode())
 
 

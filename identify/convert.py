@@ -33,7 +33,8 @@ from drivegain.config.payload import Payload, load_payload
 from drivegain.config.robot import Robot, load_robot
 from drivegain.dynamics.transmission import motor_to_joint
 from drivegain.errors import DataError, InputError
-from drivegain.formats.log import RunMetadata, write_run
+from drivegain.formats.log import RunMetadata
+from drivegain.formats.logwriter import write_run
 
 _DELIMITERS = (",", ";", "\t")
 
@@ -275,7 +276,7 @@ def convert_csv_command(args: argparse.Namespace) -> int:
         out=args.out,
         payload=getattr(args, "payload", None),
     )
-    from drivegain.formats.log import read_run
+    from drivegain.formats.logreader import read_run
 
     log = read_run(out)
     duration = log.t[-1] - log.t[0]

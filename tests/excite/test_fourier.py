@@ -8,6 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from drivegain.config import load_robot, resource_path
+from drivegain.errors import TrajectoryError
 from drivegain.excite.limits import ExcitationLimits, fourier_usage
 from drivegain.formats.fourier import FourierTrajectory, basis, derivative_bounds, start_state
 
@@ -117,7 +118,7 @@ def test_scaling_is_linear_about_q0() -> None:
 
 
 def test_rejects_inconsistent_shapes() -> None:
-    with pytest.raises(ValueError, match="inconsistent shapes"):
+    with pytest.raises(TrajectoryError, match="inconsistent shapes"):
         FourierTrajectory(0.1, np.zeros(2), np.zeros((2, 3)), np.zeros((2, 4)))
-    with pytest.raises(ValueError, match="base frequency"):
+    with pytest.raises(TrajectoryError, match="base frequency"):
         FourierTrajectory(0.0, np.zeros(1), np.zeros((1, 1)), np.zeros((1, 1)))

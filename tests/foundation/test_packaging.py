@@ -5,14 +5,22 @@ from __future__ import annotations
 import shutil
 import subprocess
 import sys
+import tomllib
 import zipfile
 from pathlib import Path
 
 import pytest
 
-COMPONENTS = {"core": "drivegain", "identify": "drivegain/identify", "excite": "drivegain/excite",
-              "drivers": "drivegain/drivers", "acquire": "drivegain/acquire",
-              "config": "drivegain/config"}  # fmt: skip
+
+def _components() -> dict[str, str]:
+    """Source folder → its path in the wheel, from pyproject's package-dir (one declaration)."""
+    root = Path(__file__).resolve().parents[2]
+    with (root / "pyproject.toml").open("rb") as fh:
+        dirs = tomllib.load(fh)["tool"]["setuptools"]["package-dir"]
+    return {folder: pkg.replace(".", "/") for pkg, folder in dirs.items()}
+
+
+COMPONENTS = _components()
 
 
 @pytest.fixture(scope="module")

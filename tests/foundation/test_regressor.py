@@ -20,6 +20,7 @@ from drivegain.config.robot import Coupling, Robot, WristFriction
 from drivegain.dynamics import regressor as reg
 from drivegain.dynamics.model import RobotModel, build_model
 from drivegain.dynamics.params import standard_names, truth_vector
+from drivegain.errors import InputError
 
 DATA = Path(__file__).resolve().parents[1] / "data"
 INERTIAL = ("XX", "XY", "XZ", "YY", "YZ", "ZZ", "MX", "MY", "MZ", "M")
@@ -292,9 +293,9 @@ def test_single_sample_and_shapes(tx40: RobotModel) -> None:
         assert one.shape == (1, 6, 86)
         np.testing.assert_allclose(one[0], all_at_once[k], rtol=0.0, atol=1e-12)
     assert reg.standard_regressor(tx40, q[:0], qd[:0], qdd[:0]).shape == (0, 6, 86)
-    with pytest.raises(ValueError, match="qd must have shape"):
+    with pytest.raises(InputError, match="qd must have shape"):
         reg.standard_regressor(tx40, q, qd[:, :5], qdd)
-    with pytest.raises(ValueError, match="same number of samples"):
+    with pytest.raises(InputError, match="same number of samples"):
         reg.standard_regressor(tx40, q[:2], qd, qdd)
 
 
@@ -305,7 +306,7 @@ def test_stack_joint_major() -> None:
     expected = np.array([x[s, j] for j in range(3) for s in range(2)])
     np.testing.assert_array_equal(stacked, expected)
     np.testing.assert_array_equal(reg.stack_joint_major(x[:, :, 0]), expected[:, 0])
-    with pytest.raises(ValueError, match="2-D or 3-D"):
+    with pytest.raises(InputError, match="2-D or 3-D"):
         reg.stack_joint_major(np.zeros(3))
 
 

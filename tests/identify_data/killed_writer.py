@@ -13,7 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from drivegain.formats.log import LogWriter, RunMetadata
+from drivegain.formats.log import RunMetadata
+from drivegain.formats.logwriter import LogWriter
 
 N_JOINTS = 6
 PERIOD_S = 0.004

@@ -15,8 +15,8 @@ from drivegain.cli import main
 from drivegain.config import load_robot, resource_path
 from drivegain.dynamics.transmission import joint_to_motor, joint_torque
 from drivegain.errors import DataError, InputError
-from drivegain.formats import log as logformat
-from drivegain.formats.log import read_run
+from drivegain.formats import logwriter as logformat
+from drivegain.formats.logreader import read_run
 from drivegain.identify.convert import convert_csv, read_csv_columns
 from drivegain.identify.signal import default_filter, derivatives
 

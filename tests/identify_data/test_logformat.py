@@ -18,15 +18,9 @@ from mcap.writer import CompressionType, Writer
 
 from drivegain.config import resource_path
 from drivegain.errors import DataError
-from drivegain.formats.log import (
-    EVENTS,
-    JOINT_STATES,
-    RAW,
-    LogWriter,
-    RunMetadata,
-    read_run,
-    write_run,
-)
+from drivegain.formats.log import EVENTS, JOINT_STATES, RAW, RunMetadata
+from drivegain.formats.logreader import read_run
+from drivegain.formats.logwriter import LogWriter, write_run
 
 HERE = Path(__file__).resolve().parent
 NAMES = ["j1", "j2", "j3", "j4", "j5", "j6"]
@@ -523,7 +517,7 @@ def test_wrong_joint_count_for_the_robot(tmp_path: Path) -> None:
 
 def test_write_run_leaves_nothing_on_error(tmp_path: Path) -> None:
     s = signals(40)
-    with pytest.raises(ValueError, match="position has 3 values"):
+    with pytest.raises(DataError, match=r"position.*has 3 values"):
         write_run(tmp_path / "x.mcap", meta(), s["t"], s["position"][:, :3], s["current_reference"])
     assert list(tmp_path.iterdir()) == []
 
@@ -580,3 +574,103 @@ def test_write_run_helper_with_events_and_gaps(tmp_path: Path) -> None:
     log = read_run(p)
     assert log.missing_cycles() == 3 and log.messages_recovered == 97
     assert log.events[0]["phase"] == "approach" and log.events[1]["code"] == 0x8130
+
+
+# --- corruption is never read as a shorter file -------------------------------------------
+
+
+def _chunked_log(tmp_path: Path, n: int = 300) -> tuple[Path, dict[str, np.ndarray]]:
+    s = signals(n)
+    w = LogWriter(tmp_path / "base.mcap", meta(), chunk_size=4 * 1024)
+    for i in range(n):
+        w.write_joint_state(
+            cycle=i,
+            t=s["t"][i],
+            log_time_ns=i * 4_000_000,
+            position=s["position"][i],
+            current_reference=s["current_reference"][i],
+            current=s["current"][i],
+            setpoint=s["setpoint"][i],
+        )
+    return w.finish(), s
+
+
+def test_a_corrupt_record_length_is_not_a_cut(tmp_path: Path) -> None:
+    """A record length pointing past the end of a finished file sends the reader to the end: it
+    used to report a cut file and drop every later cycle."""
+    p, _ = _chunked_log(tmp_path)
+    data = p.read_bytes()
+    with p.open("rb") as fh:
+        summary = make_reader(fh).get_summary()
+    assert summary is not None and len(summary.chunk_indexes) > 3
+    for length in (2**31, len(data)):
+        bad = bytearray(data)
+        start = summary.chunk_indexes[0].chunk_start_offset
+        bad[start + 1 : start + 9] = length.to_bytes(8, "little")  # after the opcode byte
+        q = tmp_path / f"len{length}.mcap"
+        q.write_bytes(bytes(bad))
+        _expect_error(q, "corrupt MCAP data at byte")
+
+
+def test_mutated_logs_are_read_whole_or_refused(tmp_path: Path) -> None:
+    """Seeded fuzzing: a complete-size file with a flipped byte, a zeroed word or a random
+    64-bit value is either read in full with the original data or refused with one line naming
+    the file; never reported as cut, never shorter, never a crash."""
+    p, s = _chunked_log(tmp_path)
+    data = p.read_bytes()
+    rng = np.random.default_rng(2026)
+    outcomes = {"read": 0, "refused": 0}
+    q = tmp_path / "mutated.mcap"
+    for k in range(300):
+        bad = bytearray(data)
+        i = int(rng.integers(8, len(data) - 16))
+        if k % 3 == 0:
+            bad[i] ^= int(rng.integers(1, 256))
+        elif k % 3 == 1:
+            bad[i : i + 4] = bytes(4)
+        else:
+            bad[i : i + 8] = int(rng.integers(0, 2**63)).to_bytes(8, "little")
+        q.write_bytes(bytes(bad))
+        try:
+            log = read_run(q)
+        except DataError as exc:
+            one_line_naming(exc, q)
+            outcomes["refused"] += 1
+            continue
+        assert not log.truncated, (k, i)
+        assert log.messages_recovered == len(s["t"]), (k, i)
+        np.testing.assert_array_equal(log.position, s["position"], err_msg=f"mutation {k}")
+        outcomes["read"] += 1
+    assert outcomes["refused"] > 100 and outcomes["read"] > 0, outcomes
+
+
+def _message(**fields: object) -> str:
+    vec = [0.0] * 6
+    obj: dict[str, object] = {"cycle": 0, "t": 0.0, "position": vec, "current_reference": vec}
+    obj.update(fields)
+    return json.dumps(obj)
+
+
+@pytest.mark.parametrize(
+    ("text", "fragment"),
+    [
+        (_message(cycle=2**70), "field 'cycle' is out of range"),
+        (_message(t=10**400), "field 't' is out of range"),
+        (_message(position=[10**400, 0, 0, 0, 0, 0]), "position[0] is out of range"),
+        ('{"cycle": 0, "deep": ' + "[" * 30_000 + "]" * 30_000 + "}", "is not valid JSON"),
+    ],
+    ids=["cycle-2**70", "t-10**400", "position-10**400", "nested-json"],
+)
+def test_numbers_out_of_range_and_deep_json_are_data_errors(
+    tmp_path: Path, text: str, fragment: str
+) -> None:
+    out = tmp_path / "odd.mcap"
+    with out.open("wb") as fh:
+        w = Writer(fh, compression=CompressionType.ZSTD)
+        w.start()
+        w.add_metadata("drivegain.run", meta().to_record())
+        sid = w.register_schema("js", "jsonschema", b"{}")
+        cid = w.register_channel(JOINT_STATES, "json", sid)
+        w.add_message(cid, log_time=0, data=text.encode(), publish_time=0)
+        w.finish()
+    _expect_error(out, fragment)
