@@ -73,7 +73,9 @@ class DriveError(DrivegainError):
     node
         CANopen node id of the drive, or ``None`` for a bus-wide fault.
     state
-        The drive's CiA 402 state name when the fault was seen, if known.
+        The drive's CiA 402 state when the fault was seen, if known: a
+        ``drivegain.drivers.cia402.State``, a string enum whose value is the state's name (so
+        the message reads "state FAULT" and it compares equal to ``"FAULT"``).
     code
         Error code (EMCY code, SDO abort code, ...) if any.
     """
@@ -107,3 +109,8 @@ class BusError(DriveError):
 
 class OperatorStop(DrivegainError):
     """The run was stopped by the operator (signal or control request)."""
+
+
+class UsageError(DrivegainError):
+    """The package was called in a way its API does not allow (wrong array shapes, a writer
+    used after it finished): a fault in the calling code, not in a file or a drive."""
