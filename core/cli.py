@@ -13,13 +13,16 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import math
 import sys
 import traceback
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any, NoReturn
 
 from drivegain import __version__
 from drivegain.errors import DrivegainError, InputError, OperatorStop
+from drivegain.fileio import check_output
 
 Handler = Callable[[argparse.Namespace], int]
 
@@ -33,6 +36,59 @@ HANDLERS = {
     "identify": "drivegain.identify.pipeline:identify_command",
     "convert csv": "drivegain.identify.convert:convert_csv_command",
 }
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with the project's error format: one line naming the option, exit status 2."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"drivegain: error: {message} (see '{self.prog} --help')\n")
+
+
+def _number(kind: type, lo: float | None, hi: float | None, unit: str = "") -> Callable[[str], Any]:
+    """An argparse type: a finite ``kind`` within [lo, hi] (either end open when None)."""
+    where = " ".join(
+        part
+        for part in (
+            "" if lo is None else f">= {lo:g}",
+            "and" if lo is not None and hi is not None else "",
+            "" if hi is None else f"<= {hi:g}",
+            unit,
+        )
+        if part
+    )
+
+    def parse(text: str) -> Any:
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {kind.__name__}, got {text!r}") from None
+        if (
+            not math.isfinite(value)
+            or (lo is not None and value < lo)
+            or (hi is not None and value > hi)
+        ):
+            raise argparse.ArgumentTypeError(f"must be {where}, got {text}")
+        return value
+
+    parse.__name__ = kind.__name__  # argparse names the type in its messages
+    return parse
+
+
+#: Bounds of the numeric options: generous for any real use, and small enough that a typo
+#: cannot ask for an hour of work or more memory than the machine has.
+SEED = _number(int, 0, 2**32 - 1)
+SAMPLES = _number(int, 1, 1_000_000)
+HARMONICS = _number(int, 1, 50)
+PERIODS = _number(int, 1, 1000)
+BASE_FREQUENCY = _number(float, 0.001, 10.0, "Hz")
+BUDGET = _number(float, 0.1, 86_400.0, "s")
+JOBS = _number(int, 1, 256)
+MARGIN = _number(float, 0.0, math.pi, "rad")
+FRACTION = _number(float, 1e-3, 1.0)
+RATE = _number(float, 1.0, 100_000.0, "Hz")
+POSITIVE = _number(float, 1e-9, 1e9)
+DECIMATE = _number(int, 1, 10_000)
 
 
 class NotAvailable(DrivegainError):
@@ -53,34 +109,56 @@ def _handler(name: str) -> Handler:
     return handler
 
 
+#: Output options checked before a command does any work (:func:`drivegain.fileio.check_output`):
+#: subcommand -> (option attribute, check keywords). Recorded logs are never overwritten.
+OUTPUTS: dict[str, list[tuple[str, dict[str, Any]]]] = {
+    "demo": [("out", {"directory": True})],
+    "excite": [("out", {"overwrite": True}), ("plot", {"overwrite": True, "key": "--plot"})],
+    "identify": [("out", {"directory": True})],
+    "convert csv": [("out", {"suffix": ".mcap"})],
+}
+
+
+def _check_outputs(args: argparse.Namespace) -> None:
+    for attr, kwargs in OUTPUTS.get(args.handler, []):
+        value = getattr(args, attr, None)
+        if value is not None:
+            check_output(value, **kwargs)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``drivegain`` command."""
     common = argparse.ArgumentParser(add_help=False)
-    common.add_argument("--debug", action="store_true", help="show tracebacks and debug logs")
-    parser = argparse.ArgumentParser(
+    # SUPPRESS: a subcommand's parser must not reset a --debug given before the subcommand.
+    common.add_argument(
+        "--debug", action="store_true", default=argparse.SUPPRESS, help="show tracebacks"
+    )
+    parser = _Parser(
         prog="drivegain",
         description="Identify robot drive gains and dynamics (IDIM-WTLS) from CANopen runs.",
         parents=[common],
     )
     parser.add_argument("--version", action="version", version=f"drivegain {__version__}")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    sub = parser.add_subparsers(
+        dest="command", metavar="COMMAND", required=True, parser_class=_Parser
+    )
 
     p = sub.add_parser(
         "demo", parents=[common], help="whole pipeline on the simulated robot (no hardware)"
     )
     p.add_argument("--out", type=Path, default=Path("drivegain-demo"), help="output folder")
-    p.add_argument("--seed", type=int, default=1, help="seed of the simulated noise")
+    p.add_argument("--seed", type=SEED, default=1, help="seed of the simulated noise")
     p.set_defaults(handler="demo")
 
     p = sub.add_parser("excite", parents=[common], help="optimise an excitation trajectory")
     p.add_argument("--robot", type=Path, required=True, help="robot TOML")
     p.add_argument("--out", type=Path, required=True, help="trajectory JSON to write")
     p.add_argument("--payload", type=Path, help="payload TOML (adds the WTLS criterion)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (same seed, same file)")
-    p.add_argument("--budget", type=float, default=60.0, help="time budget, s")
-    p.add_argument("--harmonics", type=int, default=5, help="harmonics per joint")
-    p.add_argument("--base-frequency", type=float, default=0.1, help="base frequency, Hz")
-    p.add_argument("--periods", type=int, default=3, help="periods to run")
+    p.add_argument("--seed", type=SEED, default=0, help="random seed (same seed, same file)")
+    p.add_argument("--budget", type=BUDGET, default=60.0, help="time budget, s")
+    p.add_argument("--harmonics", type=HARMONICS, default=5, help="harmonics per joint")
+    p.add_argument("--base-frequency", type=BASE_FREQUENCY, default=0.1, help="base frequency, Hz")
+    p.add_argument("--periods", type=PERIODS, default=3, help="periods to run")
     p.add_argument(
         "--criterion", choices=("cond", "logdet"), default="cond", help="optimality criterion"
     )
@@ -96,13 +174,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="nominal dynamic parameters for the WTLS criterion (sim-truth TOML; default: the "
         "shipped model of a known robot)",
     )
-    p.add_argument("--jobs", type=int, help="worker processes (default: up to 2)")
+    p.add_argument("--jobs", type=JOBS, help="worker processes (default: up to 2)")
     p.add_argument(
-        "--position-margin", type=float, help="margin kept from each position limit, rad (0.1)"
+        "--position-margin", type=MARGIN, help="margin kept from each position limit, rad (0.1)"
     )
     p.add_argument(
         "--limit-fraction",
-        type=float,
+        type=FRACTION,
         help="fraction of the velocity/acceleration/jerk limits used (0.95)",
     )
     p.set_defaults(handler="excite")
@@ -133,9 +211,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--validate", type=Path, help="a third run with a second payload (Table 5)")
     p.add_argument("--validate-payload", type=Path, help="payload TOML of the --validate run")
     p.add_argument("--friction", choices=("physical", "paper"), help="coupled-wrist friction form")
-    p.add_argument("--alpha", type=float, help="fix the V column weight instead of searching")
-    p.add_argument("--cutoff", type=float, help="low-pass cut-off of positions, Hz")
-    p.add_argument("--decimate", type=int, help="decimation factor")
+    p.add_argument("--alpha", type=POSITIVE, help="fix the V column weight instead of searching")
+    p.add_argument("--cutoff", type=POSITIVE, help="low-pass cut-off of positions, Hz")
+    p.add_argument("--decimate", type=DECIMATE, help="decimation factor")
     p.add_argument(
         "--reference",
         type=Path,
@@ -145,11 +223,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(handler="identify")
 
     p = sub.add_parser("convert", parents=[common], help="import data recorded elsewhere")
-    conv = p.add_subparsers(dest="format", metavar="FORMAT", required=True)
+    conv = p.add_subparsers(dest="format", metavar="FORMAT", required=True, parser_class=_Parser)
     c = conv.add_parser("csv", parents=[common], help="CSV positions + currents -> MCAP")
     c.add_argument("--positions", type=Path, required=True, help="CSV of positions, rad")
     c.add_argument("--currents", type=Path, required=True, help="CSV of currents (A) or torques")
-    c.add_argument("--rate", type=float, required=True, help="sample rate, Hz")
+    c.add_argument("--rate", type=RATE, required=True, help="sample rate, Hz")
     c.add_argument("--motor-side", action="store_true", help="positions/currents are motor-side")
     c.add_argument(
         "--torque",
@@ -163,11 +241,13 @@ def build_parser() -> argparse.ArgumentParser:
     c.set_defaults(handler="convert csv")
 
     p = sub.add_parser("model", parents=[common], help="inspect the robot model")
-    msub = p.add_subparsers(dest="model_command", metavar="ACTION", required=True)
+    msub = p.add_subparsers(
+        dest="model_command", metavar="ACTION", required=True, parser_class=_Parser
+    )
     m = msub.add_parser("info", parents=[common], help="joints, parameters, base parameters")
     m.add_argument("--robot", type=Path, required=True, help="robot TOML")
-    m.add_argument("--samples", type=int, default=300, help="random states for cond(W)")
-    m.add_argument("--seed", type=int, default=0, help="seed of the random states")
+    m.add_argument("--samples", type=SAMPLES, default=300, help="random states for cond(W)")
+    m.add_argument("--seed", type=SEED, default=0, help="seed of the random states")
     m.set_defaults(handler="model info")
     return parser
 
@@ -176,12 +256,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; returns the exit status."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    args.debug = getattr(args, "debug", False)
     logging.basicConfig(
         level=logging.DEBUG if args.debug else logging.INFO,
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
         stream=sys.stderr,
     )
     try:
+        _check_outputs(args)
         return int(_handler(args.handler)(args))
     except InputError as exc:
         if args.debug:
@@ -195,6 +277,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.debug:
             traceback.print_exc()
         print(f"drivegain: error: {exc}", file=sys.stderr)
+        return 1
+    except MemoryError:
+        print("drivegain: error: out of memory (try a smaller problem)", file=sys.stderr)
+        return 1
+    except OSError as exc:  # the file system, not a bug: say which file and why, in one line
+        if args.debug:
+            traceback.print_exc()
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"drivegain: error: {where}{exc.strerror or exc}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         print("drivegain: interrupted", file=sys.stderr)

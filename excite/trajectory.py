@@ -12,13 +12,13 @@ import numpy as np
 from drivegain.config.robot import Robot
 from drivegain.excite.limits import check_limits
 from drivegain.excite.motion import Motion, Phase, check_motion, plan_motion, plan_stop
+from drivegain.fileio import write_atomic
 from drivegain.formats.trajectory import (
     FORMAT_VERSION,
     ExcitationFile,
     load_trajectory,
     save_trajectory,
     trajectory_document,
-    write_atomic,
 )
 
 __all__ = [

@@ -22,6 +22,7 @@ from mcap.writer import CompressionType, Writer
 
 from drivegain import __version__
 from drivegain.errors import DataError, UsageError
+from drivegain.fileio import fsync_dir
 from drivegain.formats.log import (
     DEFAULT_CHUNK_SIZE,
     EVENT_SCHEMA,
@@ -230,7 +231,7 @@ class LogWriter:
         self._file.close()
         self._done = True
         os.replace(self.part_path, self.path)
-        _fsync_dir(self.path.parent)
+        fsync_dir(self.path.parent)
         return self.path
 
     def close_unfinished(self) -> None:
@@ -262,19 +263,6 @@ class LogWriter:
             self.close_unfinished()
             if exc is None:
                 raise
-
-
-def _fsync_dir(directory: Path) -> None:
-    try:
-        fd = os.open(directory, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
 
 
 def write_run(

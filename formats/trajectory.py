@@ -13,8 +13,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import tempfile
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,6 +23,7 @@ import numpy as np
 from drivegain import __version__
 from drivegain.config.robot import Robot
 from drivegain.errors import ConfigError, DataError, TrajectoryError
+from drivegain.fileio import write_atomic
 from drivegain.formats.fourier import FourierTrajectory, start_state
 
 FORMAT_VERSION = 1
@@ -240,26 +239,6 @@ def _dumps(obj: Any, level: int) -> str:
         items = [pad + _dumps(v, level + 1) for v in obj]
         return "[\n" + ",\n".join(items) + "\n" + " " * level + "]"
     return json.dumps(obj, allow_nan=False)
-
-
-def write_atomic(path: Path, data: bytes) -> Path:
-    """Write ``data`` to ``path`` through a temporary file and a rename."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        # mkstemp creates 0600; give the file the usual permissions (umask applied).
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
 
 
 def _reject_constant(name: str) -> float:

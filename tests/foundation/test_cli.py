@@ -6,6 +6,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from drivegain import __version__
 from drivegain.cli import main
 from drivegain.config import resource_path
@@ -45,3 +47,78 @@ def test_bad_robot_file_exit_2_one_line(tmp_path: Path) -> None:
     assert res.stderr.strip().count("\n") == 0
     assert "Traceback" not in res.stderr
     assert str(bad) in res.stderr
+
+
+def test_debug_before_or_after_the_command_shows_the_traceback(tmp_path: Path) -> None:
+    bad = tmp_path / "robot.toml"
+    bad.write_text("[robot]\nname = 1\n")
+    for argv in (["--debug", "model", "info"], ["model", "info", "--debug"]):
+        res = run(*argv, "--robot", str(bad))
+        assert res.returncode == 2
+        assert "Traceback" in res.stderr, argv
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["model", "info", "--samples", "0"],
+        ["model", "info", "--samples", "-5"],
+        ["model", "info", "--samples", "many"],
+        ["excite", "--out", "t.json", "--base-frequency", "1e308"],
+        ["excite", "--out", "t.json", "--harmonics", "10000"],
+        ["excite", "--out", "t.json", "--budget", "nan"],
+        [
+            "convert",
+            "csv",
+            "--positions",
+            "p.csv",
+            "--currents",
+            "c.csv",
+            "--out",
+            "r.mcap",
+            "--rate",
+            "1e-300",
+        ],
+    ],
+    ids=lambda a: " ".join(a[:1] + a[-2:]),
+)
+def test_numbers_out_of_bounds_one_line_exit_2(tmp_path: Path, argv: list[str]) -> None:
+    robot = str(resource_path("tx40.toml"))
+    res = subprocess.run(
+        [sys.executable, "-m", "drivegain", *argv, "--robot", robot],
+        capture_output=True,
+        text=True,
+        check=False,
+        cwd=tmp_path,
+        timeout=60,
+    )
+    assert res.returncode == 2, res.stderr
+    assert res.stderr.count("\n") == 1 and "Traceback" not in res.stderr
+    assert argv[-2] in res.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_outputs_are_refused_before_any_work(tmp_path: Path) -> None:
+    log = tmp_path / "recorded.mcap"
+    log.write_bytes(b"a recorded log")
+    csv = tmp_path / "x.csv"
+    csv.write_text("1,2,3,4,5,6\n")
+    robot = str(resource_path("tx40.toml"))
+    conv = ["convert", "csv", "--positions", str(csv), "--currents", str(csv), "--rate", "100"]
+    cases = [
+        ([*conv, "--robot", robot, "--out", str(log)], "refusing to overwrite"),
+        ([*conv, "--robot", robot, "--out", str(tmp_path / "x.txt")], "must end with .mcap"),
+        ([*conv, "--robot", robot, "--out", str(tmp_path)], "is a folder"),
+        (["demo", "--out", str(log)], "exists and is not a folder"),
+        (["excite", "--robot", robot, "--out", str(tmp_path)], "is a folder"),
+        (
+            ["identify", "--robot", robot, "--unloaded", str(log), "--out", str(log / "r")],
+            "is not a folder",
+        ),
+    ]
+    for argv, fragment in cases:
+        res = run(*argv)
+        assert res.returncode == 2, (argv, res.stderr)
+        assert fragment in res.stderr and res.stderr.count("\n") == 1, res.stderr
+    assert log.read_bytes() == b"a recorded log"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["recorded.mcap", "x.csv"]
