@@ -93,7 +93,8 @@ def _baseline_seconds() -> float:
 def _write_sim_logs(folder: Path, seconds: float, rate: float, seed: int) -> tuple[Path, Path]:
     from drivegain.config import load_payload, load_robot, load_truth, resource_path
     from drivegain.dynamics.model import build_model
-    from drivegain.formats.log import RunMetadata, write_run
+    from drivegain.formats.log import RunMetadata
+    from drivegain.formats.logwriter import write_run
     from drivegain.identify.synth import exciting_sum_of_sines, simulate_run
 
     robot = load_robot(resource_path("tx40.toml"))
@@ -258,13 +259,11 @@ def sigma_study(seeds: int, seconds: float = 60.0) -> None:
     from drivegain.config.robot import WristFriction
     from drivegain.errors import IdentificationError
     from drivegain.identify.blas import limited_blas_threads
-    from drivegain.identify.procedure import (
-        _ls_transform,
-        identify_gains,
-        joint_sigma,
-        make_design,
-        wtls_fit,
-    )
+    from drivegain.identify.design import ls_transform as _ls_transform
+    from drivegain.identify.design import make_design
+    from drivegain.identify.gains import identify_gains
+    from drivegain.identify.weighting import joint_sigma
+    from drivegain.identify.wtls import wtls_fit
 
     variants: list[tuple[str, str, dict[str, bool]]] = [
         ("paper", "α = 5, σ_j from OLS with a priori gains", {"iterate": False, "balance": False}),

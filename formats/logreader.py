@@ -509,18 +509,34 @@ def _check_monotonic(arrays: dict[str, np.ndarray], p: Path) -> None:
             )
 
 
+#: Largest magnitude a logged position (rad) or current (A) may have. Far beyond any joint or
+#: drive (10⁶ rad is 160 000 turns), small enough that squares and differences of the values
+#: stay finite in the filters: a corrupt 1e300 is refused here, not met as an overflow later.
+PLAUSIBLE_MAGNITUDE = 1e6
+
+
 def _check_finite(arrays: dict[str, np.ndarray], joint_names: list[str], p: Path) -> None:
-    for name in REQUIRED_VECTORS:
-        finite = np.isfinite(arrays[name])
-        if not finite.all():
-            k, j = (int(x) for x in np.argwhere(~finite)[0])
-            n_bad = int((~finite).any(axis=1).sum())
-            raise DataError(
-                f"{JOINT_STATES} message {k} (cycle {int(arrays['cycle'][k])}): "
-                f"{name} of joint {joint_names[j]} is not finite (NaN, inf or null); "
-                f"{n_bad} message(s) affected",
-                file=p,
-            )
+    for name in VECTOR_FIELDS:
+        values = arrays[name]
+        required = name in REQUIRED_VECTORS
+        with np.errstate(invalid="ignore"):
+            bad = ~np.isfinite(values) if required else np.abs(values) > PLAUSIBLE_MAGNITUDE
+            bad |= np.abs(values) > PLAUSIBLE_MAGNITUDE
+        if not bad.any():
+            continue
+        k, j = (int(x) for x in np.argwhere(bad)[0])
+        n_bad = int(bad.any(axis=1).sum())
+        v = values[k, j]
+        what = (
+            "is not finite (NaN, inf or null)"
+            if not np.isfinite(v)
+            else f"is {v:.6g}, beyond any plausible value (|x| <= {PLAUSIBLE_MAGNITUDE:g})"
+        )
+        raise DataError(
+            f"{JOINT_STATES} message {k} (cycle {int(arrays['cycle'][k])}): "
+            f"{name} of joint {joint_names[j]} {what}; {n_bad} message(s) affected",
+            file=p,
+        )
 
 
 def iter_channel(path: str | Path, topic: str) -> Iterator[tuple[int, dict[str, Any]]]:

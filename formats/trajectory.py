@@ -373,7 +373,7 @@ def attached_fourier(attachments: Mapping[str, bytes]) -> FourierTrajectory | No
     return None
 
 
-def _limits(raw: Any, n: int, path: Path) -> ExcitationLimits:
+def _limits(raw: Any, n: int, path: Path | None) -> ExcitationLimits:
     try:
         joints = raw["joints"]
         if len(joints) != n:

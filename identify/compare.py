@@ -1,8 +1,8 @@
 """Alternative drive-gain estimators, for the validation study (benchmarks/validate.py).
 
-Every function takes the same two designs as :func:`drivegain.identify.procedure.identify_gains`
-(run a unloaded, run b with a payload of known mass, :class:`~.procedure.Design`) and returns a
-:class:`GainEstimate`, so the estimators can be compared on exactly the same data:
+Every function takes the same two designs as :func:`drivegain.identify.gains.identify_gains`
+(run a unloaded, run b with a payload of known mass, :class:`~drivegain.identify.design.Design`)
+and returns a :class:`GainEstimate`, so the estimators can be compared on exactly the same data:
 
 - :func:`wtls_gains`: IDIM-WTLS as in the paper (our procedure; a thin wrapper);
 - :func:`tls_gains`: plain total least squares of the same total matrix, no row weights, α = 1;
@@ -29,8 +29,9 @@ import scipy.linalg
 
 from drivegain.config.payload import PAYLOAD_PARAMS, Payload
 from drivegain.errors import IdentificationError
+from drivegain.identify.design import Design
 from drivegain.identify.estimate import ls_from_factor, r_factor, tls_from_factor
-from drivegain.identify.procedure import Design, identify_gains
+from drivegain.identify.gains import identify_gains
 
 #: Per-joint LS: a column whose distance to the span of the previously kept columns is below
 #: this fraction of its norm (after unit scaling) is left out as not identifiable from this
@@ -84,6 +85,8 @@ def _known(payload: Payload, names: Sequence[str] | None = None) -> tuple[np.nda
     else:
         bad = [p for p in names if p not in PAYLOAD_PARAMS]
         if bad:
+            # A programming error of the caller (a Python argument, not a file or an option),
+            # and tests/validation pins ValueError: kept as it is.
             raise ValueError(f"unknown payload parameters {bad}; expected some of {PAYLOAD_PARAMS}")
         known = np.array([p in names for p in PAYLOAD_PARAMS])
     if not known.any():
@@ -136,7 +139,7 @@ def wtls_gains(a: Design, b: Design, payload: Payload, apriori: np.ndarray) -> G
     -------
     GainEstimate
         Gains (N·m/A) with the sandwich standard deviations of
-        :func:`~drivegain.identify.procedure.identify_gains`; ``details``: α, singular value
+        :func:`~drivegain.identify.gains.identify_gains`; ``details``: α, singular value
         gap, σ iterations, covariance block length (samples).
     """
     res = identify_gains(a, b, payload, np.asarray(apriori, dtype=float))

@@ -33,6 +33,7 @@ def r_factor(a: np.ndarray) -> np.ndarray:
     """
     a = np.asarray(a, dtype=float)
     if a.ndim != 2:
+        # Programming error of the caller, not user data.
         raise ValueError(f"expected a 2-D matrix, got shape {a.shape}")
     rows, k = a.shape
     if rows == 0:
@@ -140,6 +141,7 @@ def ols(w: np.ndarray, y: np.ndarray, names: Sequence[str] | None = None) -> LSR
     w = np.asarray(w, dtype=float)
     y = np.asarray(y, dtype=float).reshape(-1, 1)
     if w.shape[0] != y.shape[0]:
+        # Programming error of the caller, not user data.
         raise ValueError(f"W has {w.shape[0]} rows, Y {y.shape[0]}")
     return ls_from_factor(r_factor(np.hstack([w, y])), w.shape[0], names)
 

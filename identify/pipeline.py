@@ -29,7 +29,7 @@ from drivegain.config.payload import Payload, load_payload
 from drivegain.config.robot import Robot, WristFriction, load_robot
 from drivegain.dynamics.model import RobotModel, build_model
 from drivegain.errors import DataError, InputError
-from drivegain.formats.log import RunLog, read_run
+from drivegain.formats.logreader import RunLog, read_run
 from drivegain.identify.blas import limited_blas_threads
 from drivegain.identify.prepare import (
     PreparedRun,

@@ -17,7 +17,8 @@ import numpy as np
 
 from drivegain.config.payload import PAYLOAD_PARAMS
 from drivegain.config.robot import Robot
-from drivegain.identify.procedure import CaseResult, PayloadEstimate, ProcedureResult
+from drivegain.identify.cases import CaseResult, PayloadEstimate
+from drivegain.identify.procedure import ProcedureResult
 
 FORMAT_VERSION = 1
 #: Held-out residual norms closer than this fraction do not tell two friction forms apart.

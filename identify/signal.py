@@ -281,6 +281,7 @@ def derivatives(
     _check_cutoff(settings.cutoff_hz, rate_hz)
     x = np.asarray(q, dtype=float)
     if x.ndim not in (1, 2):
+        # Programming error of the caller (the log reader always gives (N, n)): not user data.
         raise ValueError(f"positions must have shape (N,) or (N, n), got {x.shape}")
     sos = np.asarray(sps.butter(settings.order, settings.cutoff_hz, fs=rate_hz, output="sos"))
     padlen = 3 * (2 * len(sos) + 1)  # sosfiltfilt's default padding
@@ -364,6 +365,7 @@ def parallel_decimate(
     n_samples = xs[0].shape[0]
     for i, x in enumerate(xs):
         if x.ndim == 0 or x.shape[0] != n_samples:
+            # Programming error of the caller (every array comes from the same recording).
             raise ValueError(f"array {i} has shape {x.shape}, expected {n_samples} samples first")
     stages = decimation_stages(int(factor))
     n = n_samples

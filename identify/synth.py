@@ -25,6 +25,7 @@ from drivegain.dynamics.model import RobotModel, build_model
 from drivegain.dynamics.params import truth_vector, with_payload
 from drivegain.dynamics.regressor import standard_regressor
 from drivegain.dynamics.transmission import currents_for_torque, joint_torque
+from drivegain.errors import InputError
 from drivegain.formats.fourier import FourierTrajectory
 
 #: Samples per regressor evaluation: bounds the (chunk, n, 86) temporary to a few tens of MB.
@@ -64,7 +65,7 @@ class SyntheticRun:
 def _per_joint(value: float | np.ndarray, n: int, name: str) -> np.ndarray:
     a = np.broadcast_to(np.asarray(value, dtype=float), (n,)).copy()
     if np.any(a < 0.0) or not np.all(np.isfinite(a)):
-        raise ValueError(f"{name} must be finite and >= 0, got {value!r}")
+        raise InputError(f"must be finite and >= 0, got {value!r}", key=name)
     return a
 
 
@@ -141,13 +142,22 @@ def simulate_run(
     current_noise
         Standard deviation of white noise on each drive's current reference, A (scalar or per
         drive): through the coupled wrist, drive 6's noise reaches joints 5 and 6.
+
+    Raises
+    ------
+    InputError
+        Trajectory arrays of different shapes or not n columns; a negative or non-finite noise
+        level or quantum.
     """
     robot = model.robot
     n = robot.n
     rng = np.random.default_rng(0) if rng is None else rng
     q, qd, qdd = (np.atleast_2d(np.asarray(x, dtype=float)) for x in (q, qd, qdd))
     if not q.shape == qd.shape == qdd.shape or q.shape[1] != n:
-        raise ValueError(f"q, qd, qdd must all have shape (N, {n})")
+        raise InputError(
+            f"must all have shape (N, {n}), got {q.shape}, {qd.shape}, {qdd.shape}",
+            key="q, qd, qdd",
+        )
     chi = truth_vector(robot, truth)
     if payload is not None:
         chi = with_payload(robot, chi, payload)
@@ -239,7 +249,14 @@ def exciting_sum_of_sines(
     number is that of the column-normalised standard regressor restricted to its independent
     columns, sampled over one period. ``base``: the model's base parameters (computed when not
     given).
+
+    Raises
+    ------
+    InputError
+        ``candidates`` < 1.
     """
+    if candidates < 1:
+        raise InputError(f"must be at least 1, got {candidates}", key="candidates")
     bp = base_parameters(model) if base is None else base
     period = 1.0 / base_frequency_hz
     t = np.linspace(0.0, period, 200, endpoint=False)
@@ -258,5 +275,7 @@ def exciting_sum_of_sines(
         cond = float(np.linalg.cond(wb))
         if cond < best_cond:
             best, best_cond = cand, cond
+    # Invariant: at least one candidate and finite condition numbers (a NaN would mean a
+    # broken regressor, a programming error).
     assert best is not None
     return best

@@ -10,14 +10,9 @@ from __future__ import annotations
 import numpy as np
 
 from drivegain.dynamics.params import truth_vector
-from drivegain.identify.procedure import (
-    Options,
-    Problem,
-    _ls_transform,
-    joint_sigma,
-    make_design,
-    run_procedure,
-)
+from drivegain.identify.design import ls_transform, make_design
+from drivegain.identify.procedure import Options, Problem, run_procedure
+from drivegain.identify.weighting import joint_sigma
 
 SEEDS = 20
 
@@ -94,7 +89,7 @@ def test_sigma_iteration_removes_the_a_priori_gain_error(world, noisy_run) -> No
     np.testing.assert_allclose(final, expected, rtol=0.1)
     # The a priori gains' errors (up to 24 %) inflate the OLS σ of some joints.
     fa, fb = da.factors(), db.factors()
-    ts = [_ls_transform(d, s, 1, world.robot.apriori_gains) for d, s in ((da, None), (db, 0))]
+    ts = [ls_transform(d, s, 1, world.robot.apriori_gains) for d, s in ((da, None), (db, 0))]
     initial = joint_sigma((da, db), (fa, fb), ts)
     np.testing.assert_allclose(initial, res.wtls.sigma_initial)
     assert np.max(initial / expected) > 1.2

@@ -11,7 +11,8 @@ import pytest
 
 from drivegain.cli import main
 from drivegain.config import resource_path
-from drivegain.formats.log import RunMetadata, write_run
+from drivegain.formats.log import RunMetadata
+from drivegain.formats.logwriter import write_run
 from drivegain.identify.synth import simulate_run
 
 RATE = 250.0

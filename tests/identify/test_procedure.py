@@ -8,14 +8,12 @@ import numpy as np
 import pytest
 
 from drivegain.config.robot import WristFriction
-from drivegain.identify.procedure import (
-    GivenGains,
-    Options,
-    Problem,
-    coupling_factor,
-    drive_noise_weights,
-    run_procedure,
-)
+from drivegain.errors import InputError
+from drivegain.identify.crossval import cross_validate
+from drivegain.identify.design import coupling_factor, make_design
+from drivegain.identify.gains import identify_gains
+from drivegain.identify.procedure import GivenGains, Options, Problem, run_procedure
+from drivegain.identify.weighting import drive_noise_weights
 
 
 def _rel(a, b) -> float:
@@ -129,3 +127,24 @@ def test_drive_noise_weights_equalise_the_current_noise(world) -> None:
         for m in range(6)
     ]
     np.testing.assert_allclose(q, q[0], rtol=1e-6)
+
+
+def test_bad_inputs_raise_input_errors(world, exact_run) -> None:
+    """A run in the wrong role, a bad α or held-out fraction: InputError naming the key."""
+    a = exact_run(0, None, label="unloaded", duration=5.0)
+    b = exact_run(1, world.payload, label="loaded", duration=5.0)
+    with pytest.raises(InputError, match="must be unloaded") as exc:
+        run_procedure(Problem(robot=world.robot, bases=world.bases, unloaded=b), Options())
+    assert exc.value.key == "payload"
+    with pytest.raises(InputError, match="has no payload"):
+        run_procedure(
+            Problem(robot=world.robot, bases=world.bases, unloaded=a, loaded=a), Options()
+        )
+    bp = world.bases[WristFriction.PHYSICAL]
+    da, db = (make_design(r, bp, WristFriction.PHYSICAL, world.robot) for r in (a, b))
+    with pytest.raises(InputError, match="positive") as exc:
+        identify_gains(da, db, world.payload, world.robot.apriori_gains, alpha=-1.0)
+    assert exc.value.key == "alpha"
+    with pytest.raises(InputError, match=r"\(0, 1\)") as exc:
+        cross_validate([da], world.robot.apriori_gains, list(bp.names), fraction=1.0)
+    assert exc.value.key == "cv_fraction"

@@ -1,8 +1,15 @@
 """The real Stäubli TX-40 recording (FIGAROH's data, ../shared/data/tx40-real).
 
 Converted to our log format with ``convert csv`` (motor-side positions and torques), then
-identified with gains = gear ratios (Case 1: one unloaded run, no payload). FIGAROH's published
-values are printed beside ours as a comparison, not a truth (see the data README).
+identified with gains = gear ratios (Case 1: one unloaded run, no payload). Skipped, with the
+reason, when ../shared is not beside the checkout.
+
+The friction coefficients are judged against the values FIGAROH published for this recording
+(data README, WLS column): their %σ are 0.7-3.9 %, and an independent OLS/WLS reproduced them
+within 1-7 %, so 15 % leaves room for a different filter and decimation but not for a wrong model
+(keeping the samples at rest in pulls the Coulomb coefficients 35-45 % low). The residual bounds
+come from the same README: a fit of published quality leaves a relative residual of 0.078, the
+known-bad fit (rest samples kept) 0.12.
 """
 
 from __future__ import annotations
@@ -18,6 +25,33 @@ from drivegain.identify.convert import convert_csv
 from drivegain.identify.pipeline import IdentifyRequest, run_identify
 
 ROBOT = resource_path("tx40.toml")
+
+#: FIGAROH's published WLS friction values on this recording (data README), in our names:
+#: fv -> Fv (viscous, N·m·s/rad), fs -> Fc (Coulomb, N·m), fvm6/fsm6 -> fvm6/fcm6 (motor 6 of
+#: the coupled wrist, physical columns). Fc6 is not listed: FIGAROH's %σ for it is 30 %.
+PUBLISHED_FRICTION = {
+    "Fv1": 8.087,
+    "Fc1": 7.014,
+    "Fv2": 5.594,
+    "Fc2": 8.134,
+    "Fv3": 1.983,
+    "Fc3": 6.283,
+    "Fv4": 1.112,
+    "Fc4": 2.490,
+    "Fv5": 1.854,
+    "Fc5": 3.041,
+    "Fv6": 0.648,
+    "fvm6": 0.616,
+    "fcm6": 1.956,
+}
+#: Largest relative difference to a published friction value.
+FRICTION_TOL = 0.15
+#: Relative residual norm ‖ρ‖/‖Y‖ of the known-bad fit (rest samples kept in, data README); a
+#: fit of published quality leaves 0.078. Both the fit and the held-out prediction must stay
+#: below it: a model that only fits its own samples does not.
+BAD_FIT_RESIDUAL = 0.12
+#: Between the published-quality (0.078) and the known-bad (0.12) residual of the README.
+FIT_RESIDUAL = 0.10
 
 
 @pytest.fixture(scope="module")
@@ -48,7 +82,6 @@ def test_real_tx40_case1(real_log: Path, tx40_real: Path, tmp_path: Path) -> Non
     res, doc = outcome.result, outcome.report
     fin = res.final
     names = outcome.robot.joint_names
-    np.testing.assert_array_equal(res.gains, [32, 32, 45, -48, 45, 32])
     print(
         f"\nreal TX-40, Case 1 (gains = gear ratios), {doc['method']['samples']} samples kept, "
         f"filter {doc['runs'][0]['filter']}"
@@ -89,9 +122,23 @@ def test_real_tx40_case1(real_log: Path, tx40_real: Path, tmp_path: Path) -> Non
         + ("(meaningful)" if margin >= 0.01 else "(not meaningful: the forms fit alike)")
     )
 
+    # FIGAROH's coupling columns are the physical ones: only that form is comparable.
+    assert res.friction is WristFriction.PHYSICAL
+    ours = dict(zip(fin.base_names, fin.base, strict=True))
+    assert set(PUBLISHED_FRICTION) <= set(ours)
+    diff = {k: ours[k] / v - 1.0 for k, v in PUBLISHED_FRICTION.items()}
+    print(
+        "friction vs published: "
+        + "  ".join(f"{k} {ours[k]:.3f} ({100 * d:+.1f} %)" for k, d in diff.items())
+    )
+    off = {k: f"{100 * d:+.1f} %" for k, d in diff.items() if abs(d) > FRICTION_TOL}
+    assert not off, f"friction more than {FRICTION_TOL:.0%} from FIGAROH's published values: {off}"
+
     assert np.all(fin.r2 >= 0.95)
-    assert fin.relative_error <= 0.13
-    assert 0.0 < cv.relative_error < 1.0
+    assert fin.relative_error <= FIT_RESIDUAL
+    # Held out: the last 30 % of the run, predicted by a fit on the rest.
+    assert cv.fraction == pytest.approx(0.3)
+    assert cv.relative_error <= BAD_FIT_RESIDUAL
     # Every friction coefficient and rotor inertia identified on its own is positive, or
     # flagged in the report's warnings.
     assert {c.name for c in res.checks} >= {"Fv1", "Fc1", "Ia3", "fvm6", "fcm6"}

@@ -674,3 +674,16 @@ def test_numbers_out_of_range_and_deep_json_are_data_errors(
         w.add_message(cid, log_time=0, data=text.encode(), publish_time=0)
         w.finish()
     _expect_error(out, fragment)
+
+
+def test_an_implausible_value_is_named_before_any_filtering(tmp_path: Path) -> None:
+    s = signals(50)
+    s["position"][7, 2] = 1e300
+    p = write_run(tmp_path / "big.mcap", meta(), s["t"], s["position"], s["current_reference"])
+    _expect_error(p, "message 7 (cycle 7)", "position of joint j3 is 1e+300", "1 message(s)")
+    s = signals(50)
+    s["current"][3, 0] = -1e12  # optional channels are checked for magnitude too
+    p = write_run(
+        tmp_path / "cur.mcap", meta(), s["t"], s["position"], s["current_reference"], s["current"]
+    )
+    _expect_error(p, "message 3 (cycle 3)", "current of joint j1 is -1e+12")

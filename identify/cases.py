@@ -1,0 +1,227 @@
+"""IDIM-WLS with known gains: Case 1 (a priori gains), Case 2 (identified gains), validation.
+
+The base parameters and every loaded run's 10 payload parameters are solved together by
+weighted least squares (Gautier & Briot 2012, §4), rows of joint j weighted by 1/σ_j from an OLS
+of joint j's equations alone (Gautier 1997); standard deviations by eq. (8)-(11) from the R
+factor, never by inverting WᵀW. Also the fit quality measures every case reports (R² and
+relative residual norm per joint).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from drivegain.config.payload import PAYLOAD_PARAMS
+from drivegain.identify.design import (
+    Design,
+    joint_residual_sq,
+    ls_transform,
+    stacked_factor,
+)
+from drivegain.identify.estimate import LSResult, ls_from_factor
+from drivegain.identify.weighting import joint_sigma
+
+
+@dataclass(frozen=True)
+class PayloadEstimate:
+    """Identified inertial parameters of one payload (order XX XY XZ YY YZ ZZ MX MY MZ M)."""
+
+    name: str
+    values: np.ndarray
+    std: np.ndarray
+    nominal: np.ndarray
+    known: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class CaseResult:
+    """One IDIM-WLS identification with fixed gains (a column of Tables 2, 4 or 5).
+
+    Attributes
+    ----------
+    name
+        ``case1``, ``case2``, ``given``.
+    gains
+        Drive gains used, N·m/A.
+    base_names, base, base_std
+        Base parameters, their values and standard deviations (eq. 10).
+    payloads
+        Identified payloads (one per loaded run).
+    residual_norm
+        ‖ρ‖ = ‖Y − W χ̂‖, N·m, unweighted.
+    relative_error
+        ‖ρ‖ / ‖Y‖.
+    sigma_rho
+        ‖ρ‖ / √(r − b), N·m (Table 4).
+    sigma_joint
+        σ̂_j used to weight the rows, N·m.
+    r2, joint_relative
+        Per joint: R² of measured against computed torque, and ‖ρ_j‖/‖Y_j‖.
+    rows
+        Equations r.
+    wls
+        The weighted solution with its statistics.
+    """
+
+    name: str
+    gains: np.ndarray
+    base_names: list[str]
+    base: np.ndarray
+    base_std: np.ndarray
+    payloads: list[PayloadEstimate]
+    residual_norm: float
+    relative_error: float
+    sigma_rho: float
+    sigma_joint: np.ndarray
+    r2: np.ndarray
+    joint_relative: np.ndarray
+    rows: int
+    wls: LSResult
+
+    def coefficients(self) -> tuple[np.ndarray, list[np.ndarray]]:
+        return self.base, [p.values for p in self.payloads]
+
+
+def _payload_slots(designs: Sequence[Design]) -> list[int | None]:
+    slots: list[int | None] = []
+    k = 0
+    for d in designs:
+        if d.loaded:
+            slots.append(k)
+            k += 1
+        else:
+            slots.append(None)
+    return slots
+
+
+def fit_case(
+    name: str,
+    designs: Sequence[Design],
+    gains: np.ndarray,
+    base_names: Sequence[str],
+    factors: Sequence[np.ndarray] | None = None,
+) -> CaseResult:
+    """IDIM-WLS of the base parameters and every loaded run's 10 payload parameters.
+
+    Rows of joint j are weighted by 1/σ_j from an OLS of joint j's equations alone
+    (Gautier 1997); standard deviations by eq. (8)-(11) from the R factor.
+    """
+    gains = np.asarray(gains, dtype=float)
+    if factors is None:
+        factors = [d.factors() for d in designs]
+    slots = _payload_slots(designs)
+    n_slots = sum(s is not None for s in slots)
+    transforms = [ls_transform(d, s, n_slots, gains) for d, s in zip(designs, slots, strict=True)]
+    names = list(base_names)
+    for d, s in zip(designs, slots, strict=True):
+        if s is not None and d.run.payload is not None:
+            names += [f"{p}_{d.run.payload.name}" for p in PAYLOAD_PARAMS]
+    sigma = joint_sigma(designs, factors, transforms)
+    rows = sum(d.rows for d in designs) * designs[0].n
+    r = stacked_factor(factors, transforms, 1.0 / sigma)
+    res = ls_from_factor(r, rows, names)
+    x_aug = np.append(res.x, -1.0)
+    res_sq = joint_residual_sq(factors, transforms, x_aug)
+    y_sq = joint_residual_sq(factors, transforms, np.append(np.zeros(res.x.size), 1.0))
+    nb = designs[0].nb
+    chi = res.x[:nb]
+    payloads = []
+    for d, s in zip(designs, slots, strict=True):
+        if s is None or d.run.payload is None:
+            continue
+        sl = slice(nb + 10 * s, nb + 10 * (s + 1))
+        payloads.append(
+            PayloadEstimate(
+                name=d.run.payload.name,
+                values=res.x[sl],
+                std=res.std[sl],
+                nominal=d.run.payload.values.copy(),
+                known=d.run.payload.known,
+            )
+        )
+    r2, joint_rel = _joint_quality(designs, gains, chi, [p.values for p in payloads])
+    rho = float(np.sqrt(res_sq.sum()))
+    return CaseResult(
+        name=name,
+        gains=gains,
+        base_names=list(base_names),
+        base=chi,
+        base_std=res.std[:nb],
+        payloads=payloads,
+        residual_norm=rho,
+        relative_error=rho / float(np.sqrt(y_sq.sum())),
+        sigma_rho=rho / np.sqrt(max(rows - res.x.size, 1)),
+        sigma_joint=sigma,
+        r2=r2,
+        joint_relative=joint_rel,
+        rows=rows,
+        wls=res,
+    )
+
+
+def predictions(
+    designs: Sequence[Design], gains: np.ndarray, chi: np.ndarray, payloads: Sequence[np.ndarray]
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Measured and computed joint torques of every design.
+
+    Parameters
+    ----------
+    designs
+        The runs.
+    gains
+        Drive gains, N·m/A, (n,).
+    chi
+        Base parameters (SI units of each parameter), (nb,).
+    payloads
+        Payload parameters of the loaded designs, in their order, (10,) each.
+
+    Returns
+    -------
+    list of (numpy.ndarray, numpy.ndarray)
+        Per design, (measured V·g, computed W·χ + W_L·χ_L), N·m, (N, n) each.
+    """
+    out = []
+    k = 0
+    for d in designs:
+        chi_l = None
+        if d.loaded:
+            chi_l = payloads[k]
+            k += 1
+        out.append((d.torque(gains), d.model_torque(chi, chi_l)))
+    return out
+
+
+def torque_quality(
+    pairs: Sequence[tuple[np.ndarray, np.ndarray]],
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per-joint fit quality of measured against computed torques, all designs together.
+
+    Parameters
+    ----------
+    pairs
+        (measured, computed) torques per design, N·m, as :func:`predictions` returns.
+
+    Returns
+    -------
+    r2, relative
+        Per joint: R² (NaN for a joint whose torque is constant) and ‖ρ_j‖/‖Y_j‖, (n,) each.
+    """
+    y = np.concatenate([p[0] for p in pairs])
+    yh = np.concatenate([p[1] for p in pairs])
+    res = y - yh
+    ss_res = np.sum(res**2, axis=0)
+    ss_tot = np.sum((y - y.mean(axis=0)) ** 2, axis=0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r2 = np.where(ss_tot > 0, 1.0 - ss_res / ss_tot, np.nan)
+        rel = np.sqrt(ss_res / np.sum(y**2, axis=0))
+    return r2, rel
+
+
+def _joint_quality(
+    designs: Sequence[Design], gains: np.ndarray, chi: np.ndarray, payloads: Sequence[np.ndarray]
+) -> tuple[np.ndarray, np.ndarray]:
+    """R² and relative residual norm per joint of a fit on ``designs``."""
+    return torque_quality(predictions(designs, gains, chi, payloads))

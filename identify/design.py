@@ -1,0 +1,220 @@
+"""Designs: one prepared run seen through one friction form's base parameters.
+
+A :class:`Design` holds, per joint j, the rows ``D_j = [W_base | W_payload | V_j]`` of one run
+(Gautier & Briot 2012, eq. 19-21). Every estimator of the procedure works on the per-joint R
+factors of those rows and a *column transform* T, so that ``D_j T`` holds the unknowns of its
+problem (:func:`ls_transform` for IDIM-(W)LS with known gains, :func:`tls_transform` for
+IDIM-WTLS): the α grid and the σ iteration then cost almost nothing.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from drivegain.config.payload import PAYLOAD_PARAMS
+from drivegain.config.robot import Robot, WristFriction
+from drivegain.dynamics.base import BaseParameters
+from drivegain.identify.estimate import r_factor
+from drivegain.identify.prepare import PreparedRun, base_keys, payload_keys
+
+
+@dataclass(frozen=True)
+class Design:
+    """Rows of one run: per joint j, ``D_j = [W_base | W_payload | V_j]`` (N, nb + 10 + n).
+
+    ``W_payload`` holds the inertial columns of the payload's link (zero for an unloaded run);
+    ``V_j`` is row j of the coupled current matrix (eq. 21).
+    """
+
+    run: PreparedRun
+    base_idx: np.ndarray
+    payload_idx: np.ndarray | None
+    kt: np.ndarray
+
+    @property
+    def n(self) -> int:
+        return int(self.kt.shape[0])
+
+    @property
+    def nb(self) -> int:
+        return int(self.base_idx.shape[0])
+
+    @property
+    def m(self) -> int:
+        return self.nb + len(PAYLOAD_PARAMS) + self.n
+
+    @property
+    def rows(self) -> int:
+        return self.run.samples
+
+    @property
+    def loaded(self) -> bool:
+        return self.payload_idx is not None
+
+    def block(self, j: int) -> np.ndarray:
+        """``D_j`` (N, m)."""
+        w = self.run.regressor[:, j, :]
+        out = np.zeros((self.rows, self.m))
+        out[:, : self.nb] = w[:, self.base_idx]
+        if self.payload_idx is not None:
+            out[:, self.nb : self.nb + 10] = w[:, self.payload_idx]
+        out[:, self.nb + 10 :] = self.run.current * self.kt[j][None, :]
+        return out
+
+    def factors(self) -> np.ndarray:
+        """R factors of every joint's ``D_j``: (n, m, m)."""
+        return np.stack([r_factor(self.block(j)) for j in range(self.n)])
+
+    def torque(self, gains: np.ndarray) -> np.ndarray:
+        """Joint torques V·g (N·m) the current references stand for with ``gains``, (N, n)."""
+        return self.run.current @ (self.kt * np.asarray(gains)[None, :]).T
+
+    def model_torque(self, chi: np.ndarray, chi_payload: np.ndarray | None) -> np.ndarray:
+        """Joint torques W·χ + W_L·χ_L of the model (N·m), (N, n)."""
+        coef = np.zeros(self.run.regressor.shape[2])
+        np.add.at(coef, self.base_idx, chi)
+        if self.payload_idx is not None and chi_payload is not None:
+            np.add.at(coef, self.payload_idx, chi_payload)
+        return np.asarray(self.run.regressor @ coef)
+
+    def subset(self, sl: slice) -> Design:
+        return Design(self.run.rows(sl), self.base_idx, self.payload_idx, self.kt)
+
+
+def coupling_factor(robot: Robot) -> np.ndarray:
+    """kt with ``V[:, j, :] = v * kt[j]`` (eq. 21): 1 on the diagonal and at coupled motors."""
+    k = robot.transmission()
+    return np.asarray(k.T / np.diag(k)[None, :])
+
+
+def make_design(run: PreparedRun, bp: BaseParameters, form: WristFriction, robot: Robot) -> Design:
+    """The design of ``run`` for the base parameters ``bp`` of friction form ``form``."""
+    base_idx = run.column_index(base_keys(bp, form))
+    payload_idx = None
+    if run.payload is not None:
+        payload_idx = run.column_index(payload_keys(robot, run.payload.link))
+    return Design(run=run, base_idx=base_idx, payload_idx=payload_idx, kt=coupling_factor(robot))
+
+
+# --------------------------------------------------------------------------------------------
+# Column transforms: the unknowns of each problem as combinations of a design's columns
+
+
+def ls_transform(d: Design, slot: int | None, n_slots: int, gains: np.ndarray) -> np.ndarray:
+    """Column transform of IDIM-(W)LS with known gains: ``D T = [W_base | W_payload | V g]``.
+
+    Parameters
+    ----------
+    d
+        The design.
+    slot
+        Index of this run's payload among the ``n_slots`` payloads solved together, or None for
+        an unloaded run.
+    n_slots
+        Number of payloads solved together (10 unknowns each).
+    gains
+        Drive gains, N·m/A, (n,).
+
+    Returns
+    -------
+    numpy.ndarray
+        T, (m, nb + 10·n_slots + 1); its last column gives the measured torque V g.
+    """
+    nb, m = d.nb, d.m
+    k = nb + 10 * n_slots
+    t = np.zeros((m, k + 1))
+    t[:nb, :nb] = np.eye(nb)
+    if slot is not None:
+        t[nb : nb + 10, nb + 10 * slot : nb + 10 * (slot + 1)] = np.eye(10)
+    t[nb + 10 :, k] = gains
+    return t
+
+
+def tls_transform(
+    d: Design, known: np.ndarray, chi_known: np.ndarray, weights: np.ndarray
+) -> np.ndarray:
+    """Column transform of IDIM-WTLS: ``D T = [−W, V·diag(w), −W_uL, −W_kL χ_kL]`` (eq. 19).
+
+    Parameters
+    ----------
+    d
+        The design; the payload columns (−W_uL, −W_kL χ_kL) are filled only if it is loaded.
+    known
+        Mask over the 10 payload parameters of those whose value is known, (10,).
+    chi_known
+        Values of the known payload parameters (SI units), (count of ``known``,).
+    weights
+        Per-drive weights w = α·c of the V columns
+        (:func:`drivegain.identify.weighting.drive_noise_weights`), scalar or (n,).
+
+    Returns
+    -------
+    numpy.ndarray
+        T, (m, nb + n + unknown payload parameters + 1); its last column is δ's.
+    """
+    nb, n, m = d.nb, d.n, d.m
+    unknown = np.flatnonzero(~known)
+    nu = unknown.size
+    t = np.zeros((m, nb + n + nu + 1))
+    t[:nb, :nb] = -np.eye(nb)
+    t[nb + 10 :, nb : nb + n] = np.diag(np.broadcast_to(weights, (n,)))
+    if d.loaded:
+        for col, p in enumerate(unknown):
+            t[nb + p, nb + n + col] = -1.0
+        t[nb + np.flatnonzero(known), -1] = -chi_known
+    return t
+
+
+def stacked_factor(
+    factors: Sequence[np.ndarray], transforms: Sequence[np.ndarray], weights: np.ndarray
+) -> np.ndarray:
+    """R factor of the stacked, row-weighted, column-transformed rows of several runs.
+
+    Parameters
+    ----------
+    factors
+        Per run, the R factors of every joint's rows, (n, m, m).
+    transforms
+        Per run, the column transform T of the problem.
+    weights
+        Row weight of each joint, 1/σ_j (1/(N·m)), (n,).
+
+    Returns
+    -------
+    numpy.ndarray
+        Upper-triangular R of ``[w_j R_j T]`` over runs and joints.
+    """
+    blocks = [
+        weights[j] * (f[j] @ t)
+        for f, t in zip(factors, transforms, strict=True)
+        for j in range(f.shape[0])
+    ]
+    return r_factor(np.vstack(blocks))
+
+
+def joint_residual_sq(
+    factors: Sequence[np.ndarray], transforms: Sequence[np.ndarray], x_aug: np.ndarray
+) -> np.ndarray:
+    """Σ over runs of ‖D_j T x‖² per joint.
+
+    Parameters
+    ----------
+    factors, transforms
+        As for :func:`stacked_factor`.
+    x_aug
+        Unknowns with the fixed last component appended (−1 for a residual, as in ``[x; −1]``).
+
+    Returns
+    -------
+    numpy.ndarray
+        Squared norm of the unweighted equation errors of each joint, (N·m)², (n,).
+    """
+    n = factors[0].shape[0]
+    out = np.zeros(n)
+    for f, t in zip(factors, transforms, strict=True):
+        tx = t @ x_aug
+        out += np.array([float(np.sum((f[j] @ tx) ** 2)) for j in range(n)])
+    return out

@@ -1,0 +1,211 @@
+"""Drive gains by IDIM-WTLS (Gautier & Briot 2012, §3): the α search and its diagnostics.
+
+:func:`identify_gains` takes the unloaded run a and the loaded run b, starts σ_j from a
+per-joint OLS with the a priori gains (as the paper), solves IDIM-WTLS
+(:func:`~drivegain.identify.wtls.wtls_fit`) over a log-spaced grid of α (the V columns'
+weight), refines around the α of the smallest weighted relative error norm, and returns the
+gains with their sandwich standard deviations (:func:`~drivegain.identify.wtls.wtls_covariance`)
+and what a user should check: the gap between the two smallest singular values, the σ
+iteration, poorly determined gains.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from drivegain.config.payload import PAYLOAD_PARAMS, Payload
+from drivegain.errors import IdentificationError, InputError
+from drivegain.identify.design import Design, ls_transform
+from drivegain.identify.weighting import joint_sigma
+from drivegain.identify.wtls import SIGMA_MAX_ITER, WTLSFit, wtls_covariance, wtls_fit
+
+#: α grid (the V columns' weight): log-spaced, refined around the best point.
+DEFAULT_ALPHA_GRID = tuple(float(a) for a in np.logspace(-4, 3, 15))
+#: Warn when the two smallest singular values of the WTLS matrix are closer than this ratio.
+GAP_WARN = 1.5
+#: Warn when a gain's relative standard deviation exceeds this, %.
+GAIN_RSD_WARN = 5.0
+
+#: Progress callback: receives a one-line description of the step starting.
+Step = Callable[[str], None]
+
+
+def no_step(_: str) -> None:
+    """A progress callback that shows nothing."""
+    return None
+
+
+@dataclass(frozen=True)
+class GainIdentification:
+    """IDIM-WTLS result: gains with standard deviations and the diagnostics of the method.
+
+    Attributes
+    ----------
+    gains, std
+        Identified drive gains (N·m/A) and one standard deviation each.
+    fit
+        The WTLS solution at the chosen α.
+    alpha_curve
+        (α, weighted relative error norm) over the grid searched; empty when α was fixed.
+    sigma_initial
+        σ_j from per-joint OLS with the a priori gains (the paper's first weighting), N·m.
+    covariance
+        Covariance of (χ, g, χ_uL) (sandwich estimate, see
+        :func:`drivegain.identify.estimate.tls_covariance`).
+    block, clusters
+        Window length (samples) and number of clusters of the covariance estimate
+        (:func:`~drivegain.identify.wtls.wtls_covariance`).
+    payload_names, payload_unknown, payload_std
+        The payload parameters the WTLS identified along with the gains.
+    warnings
+        Ill-determination diagnostics.
+    """
+
+    gains: np.ndarray
+    std: np.ndarray
+    fit: WTLSFit
+    alpha_curve: list[tuple[float, float]]
+    sigma_initial: np.ndarray
+    covariance: np.ndarray
+    block: int
+    clusters: int
+    payload_names: list[str]
+    payload_unknown: np.ndarray
+    payload_std: np.ndarray
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def rel_std_percent(self) -> np.ndarray:
+        """Relative standard deviation of each gain, %."""
+        return np.asarray(100.0 * self.std / np.abs(self.gains))
+
+
+def _refine_grid(grid: Sequence[float], best: int, points: int = 5) -> list[float]:
+    """Log-spaced points between the neighbours of the best grid point."""
+    g = sorted(grid)
+    lo = g[max(best - 1, 0)]
+    hi = g[min(best + 1, len(g) - 1)]
+    if hi <= lo:
+        return []
+    return [float(v) for v in np.logspace(np.log10(lo), np.log10(hi), points + 2)[1:-1]]
+
+
+def identify_gains(
+    a: Design,
+    b: Design,
+    payload: Payload,
+    apriori: np.ndarray,
+    *,
+    alpha: float | None = None,
+    alpha_grid: Sequence[float] = DEFAULT_ALPHA_GRID,
+    step: Step = no_step,
+) -> GainIdentification:
+    """IDIM-WTLS identification of the drive gains from an unloaded and a loaded run.
+
+    Parameters
+    ----------
+    a, b
+        Designs of run a (unloaded) and run b (with ``payload``).
+    payload
+        The payload of run b; its ``known`` parameters set the scale.
+    apriori
+        A priori gains, N·m/A: only for the first σ_j (per-joint OLS, as in the paper).
+    alpha
+        Fixed V-column weight; None searches ``alpha_grid`` (then refines around the best).
+    step
+        Progress callback.
+
+    Returns
+    -------
+    GainIdentification
+        Gains, standard deviations and diagnostics at the chosen α.
+
+    Raises
+    ------
+    InputError
+        ``alpha`` is given and not a positive number.
+    IdentificationError
+        Run b is not loaded, no finite-scale solution, or the data cannot determine the
+        unknowns.
+    """
+    if not b.loaded:
+        raise IdentificationError("IDIM-WTLS needs a loaded run")
+    step("IDIM-WTLS: factorising")
+    designs = (a, b)
+    factors = (a.factors(), b.factors())
+    slots = [None, 0]
+    ls_t = [ls_transform(d, s, 1, np.asarray(apriori)) for d, s in zip(designs, slots, strict=True)]
+    sigma0 = joint_sigma(designs, factors, ls_t)
+    curve: list[tuple[float, float]] = []
+    fits: dict[float, WTLSFit | None] = {}
+    failures: list[str] = []
+
+    def run(al: float) -> WTLSFit | None:
+        if al not in fits:
+            try:
+                fit = wtls_fit(designs, factors, payload, al, sigma0, np.asarray(apriori))
+            except IdentificationError as exc:
+                # At an extreme α the scale may become unobservable; other α may be fine.
+                fits[al] = None
+                failures.append(f"α = {al:.3g}: {exc}")
+                curve.append((al, float("nan")))
+                return None
+            fits[al] = fit
+            curve.append((al, fit.relative_error))
+        return fits[al]
+
+    if alpha is not None:
+        if not (np.isfinite(alpha) and alpha > 0):
+            raise InputError(f"must be a positive number, got {alpha}", key="alpha")
+        fixed = run(float(alpha))
+        if fixed is None:
+            raise IdentificationError(failures[-1])
+        best = fixed
+        curve.clear()
+    else:
+        grid = sorted(float(v) for v in alpha_grid)
+        for i, al in enumerate(grid):
+            step(f"IDIM-WTLS: α grid {i + 1}/{len(grid)}")
+            run(al)
+        values = [f.relative_error if f is not None else np.inf for f in (fits[g] for g in grid)]
+        if not np.isfinite(min(values)):
+            raise IdentificationError(f"IDIM-WTLS failed for every α: {failures[0]}")
+        best_i = int(np.argmin(values))
+        for al in _refine_grid(grid, best_i):
+            run(al)
+        best = min((f for f in fits.values() if f is not None), key=lambda f: f.relative_error)
+        curve.sort()
+    step("IDIM-WTLS: covariance")
+    cov, block, n_clusters, warnings = wtls_covariance(designs, payload, best)
+    nb, n = a.nb, a.n
+    std_all = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    gains = best.gains
+    std = std_all[nb : nb + n]
+    if best.tls.gap < GAP_WARN:
+        warnings.append(
+            f"IDIM-WTLS is ill-determined: the two smallest singular values are close "
+            f"(ratio {best.tls.gap:.3g} < {GAP_WARN}); excite more or use a heavier payload"
+        )
+    if not best.converged:
+        warnings.append(f"σ_j iteration did not settle in {SIGMA_MAX_ITER} steps")
+    rsd = 100.0 * std / np.abs(gains)
+    for j in np.flatnonzero(rsd > GAIN_RSD_WARN):
+        warnings.append(f"gain of joint {j + 1} is poorly determined (%σ = {rsd[j]:.3g} %)")
+    unknown = [p for p, k in zip(PAYLOAD_PARAMS, payload.known_mask(), strict=True) if not k]
+    return GainIdentification(
+        gains=gains,
+        std=std,
+        fit=best,
+        alpha_curve=curve,
+        sigma_initial=sigma0,
+        covariance=cov,
+        block=block,
+        clusters=n_clusters,
+        payload_names=unknown,
+        payload_unknown=best.payload_unknown,
+        payload_std=std_all[nb + n :],
+        warnings=warnings,
+    )
