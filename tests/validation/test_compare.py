@@ -23,15 +23,16 @@ from drivegain.identify.compare import (
     tls_gains,
     wtls_gains,
 )
+from drivegain.identify.design import Design, coupling_factor, make_design
 from drivegain.identify.prepare import prepare_exact
-from drivegain.identify.procedure import Design, coupling_factor, make_design
 from drivegain.identify.synth import simulate_run
+from drivegain.validation.world import World
 
 RATE = 10.0  # Hz: exact derivatives need no filter, so few samples suffice
 
 
 @pytest.fixture(scope="module")
-def exact(world: Any) -> tuple[Design, Design]:
+def exact(world: World) -> tuple[Design, Design]:
     """Runs a and b along the shipped excitation, noise-free, exact derivatives."""
     t = np.arange(0.0, world.fourier.duration_s, 1.0 / RATE)
     q, qd, qdd, _ = world.fourier.evaluate(t)
@@ -53,7 +54,7 @@ def exact(world: Any) -> tuple[Design, Design]:
     return designs[0], designs[1]
 
 
-def test_coupled_estimators_return_the_true_gains(world: Any, exact: Any) -> None:
+def test_coupled_estimators_return_the_true_gains(world: World, exact: Any) -> None:
     a, b = exact
     g = world.truth.gains
     estimates = [
@@ -67,7 +68,7 @@ def test_coupled_estimators_return_the_true_gains(world: Any, exact: Any) -> Non
         np.testing.assert_allclose(est.gains, g, rtol=1e-7, err_msg=est.method)
 
 
-def test_diagonal_current_matrix_misses_the_coupled_gain(world: Any, exact: Any) -> None:
+def test_diagonal_current_matrix_misses_the_coupled_gain(world: World, exact: Any) -> None:
     """Without g6·v6 in joint 5's equation, g5 is wrong; the global TLS spreads the error."""
     a, b = (diagonal_design(d) for d in exact)
     g = world.truth.gains
@@ -82,7 +83,7 @@ def test_diagonal_current_matrix_misses_the_coupled_gain(world: Any, exact: Any)
     np.testing.assert_allclose(np.delete(pj.gains, 4), np.delete(g, 4), rtol=1e-7)
 
 
-def test_per_joint_with_the_mass_only_cannot_scale_the_wrist(world: Any, exact: Any) -> None:
+def test_per_joint_with_the_mass_only_cannot_scale_the_wrist(world: World, exact: Any) -> None:
     """The payload sits at the wrist centre, on the axes of joints 4-6: its mass exerts no
     torque there (its column is zero in those rows), so those gains have no scale."""
     a, b = exact
@@ -95,14 +96,14 @@ def test_per_joint_with_the_mass_only_cannot_scale_the_wrist(world: Any, exact: 
         per_joint_gains(a, b, world.payload, known=["mass"])
 
 
-def test_estimators_refuse_swapped_runs(world: Any, exact: Any) -> None:
+def test_estimators_refuse_swapped_runs(world: World, exact: Any) -> None:
     a, b = exact
     for fn in (tls_gains, global_ls_gains):
         with pytest.raises(IdentificationError, match="unloaded"):
             fn(b, a, world.payload)
 
 
-def test_coupled_joint_is_solved_after_its_coupled_motor(world: Any) -> None:
+def test_coupled_joint_is_solved_after_its_coupled_motor(world: World) -> None:
     order = _solve_order(coupling_factor(world.robot))
     assert sorted(order) == list(range(6))
     assert order.index(5) < order.index(4)  # joint 6 before joint 5 on the TX-40

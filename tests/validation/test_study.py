@@ -1,4 +1,4 @@
-"""A small version of the validation study (benchmarks/validate.py): 2 seeds per scenario.
+"""A small version of the validation study (drivegain.validation): 2 seeds per scenario.
 
 Checks what the study must show, against the simulation truth: our gains are accurate, the
 diagonal current matrix is wrong on the coupled wrist, least squares is biased when the current
@@ -10,21 +10,28 @@ checked on known answers.
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from dataclasses import replace
 from pathlib import Path
-from types import ModuleType
-from typing import Any
 
 import numpy as np
 import pytest
 
+from drivegain.errors import InputError
 from drivegain.identify.signal import FilterSettings
+from drivegain.validation.scenarios import Scenario
+from drivegain.validation.statistics import bootstrap_ratio, decimated_noise_factor, wilson
+from drivegain.validation.study import run_study
+from drivegain.validation.world import World
+
+SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "validate.py"
 
 
 @pytest.fixture(scope="module")
-def study(validate: ModuleType, tmp_path_factory: pytest.TempPathFactory) -> tuple[dict, Path]:
+def study(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict, Path]:
     out = tmp_path_factory.mktemp("study")
-    data = validate.run_study(seeds=2, budget_s=600.0, out=out, real=None, progress=lambda _: None)
+    data = run_study(seeds=2, budget_s=600.0, out=out, real=None, progress=lambda _: None)
     return data, out
 
 
@@ -73,24 +80,39 @@ def test_what_the_comparison_must_show(study: tuple[dict, Path]) -> None:
             assert np.all(c2 < c1), (key, which)
 
 
-def test_decimated_noise_is_band_limited(validate: ModuleType, world: Any) -> None:
+def test_decimated_noise_is_band_limited(world: World) -> None:
     """White noise stays white without decimation; the decimation's pass band (0.8 of the new
     Nyquist frequency) makes its low-frequency density about 1/0.8 of the white equivalent."""
     plain = replace(world, settings=FilterSettings(cutoff_hz=5.0, decimate=1, trim=10))
-    assert validate.decimated_noise_factor(plain) == pytest.approx(1.0, abs=0.06)
-    assert 1.12 < validate.decimated_noise_factor(world) < 1.32
+    assert decimated_noise_factor(plain) == pytest.approx(1.0, abs=0.06)
+    assert 1.12 < decimated_noise_factor(world) < 1.32
 
 
-def test_statistics_helpers_on_known_answers(validate: ModuleType) -> None:
-    lo, hi = validate.wilson(0.5, 100)
+def test_statistics_helpers_on_known_answers() -> None:
+    lo, hi = wilson(0.5, 100)
     assert lo == pytest.approx(0.4038, abs=1e-3) and hi == pytest.approx(0.5962, abs=1e-3)
     ref = np.random.default_rng(0).standard_normal((30, 6))
-    ratio, lo, hi = validate.bootstrap_ratio(2 * ref, ref, np.random.default_rng(1))
+    ratio, lo, hi = bootstrap_ratio(2 * ref, ref, np.random.default_rng(1))
     assert ratio == pytest.approx(2.0) and lo == pytest.approx(2.0) and hi == pytest.approx(2.0)
 
 
-def test_bad_options_exit_2(validate: ModuleType) -> None:
+def test_bad_options_are_input_errors(tmp_path: Path) -> None:
+    """The library refuses before any work; the script turns that into exit status 2."""
+    for kwargs in ({"seeds": 1, "budget_s": 600.0}, {"seeds": 2, "budget_s": -5.0}):
+        with pytest.raises(InputError):
+            run_study(**kwargs, out=tmp_path, real=None, progress=lambda _: None)
+    unknown = Scenario("torque-1", "torque noise 1 N·m", 1.0, 0.0)
+    with pytest.raises(InputError, match="unknown scenario"):
+        run_study(
+            seeds=2, budget_s=600.0, out=tmp_path, scenarios=[unknown], progress=lambda _: None
+        )
+    assert not any(tmp_path.iterdir())  # refused before writing anything
+
+
+def test_script_bad_options_exit_2() -> None:
     for argv in (["--seeds", "1"], ["--budget", "-5"]):
-        with pytest.raises(SystemExit) as exc:
-            validate.main(argv)
-        assert exc.value.code == 2
+        proc = subprocess.run(
+            [sys.executable, str(SCRIPT), *argv], capture_output=True, text=True, timeout=120
+        )
+        assert proc.returncode == 2, proc.stderr
+        assert argv[0] in proc.stderr

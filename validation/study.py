@@ -1,0 +1,168 @@
+"""The study driver: Monte Carlo, the paper's tables, the real recording, figures, document.
+
+:func:`run_study` is what ``benchmarks/validate.py`` runs; it writes ``out/validation.md`` and
+``out/validation/`` (figures and ``results.json``, every number of the page).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import platform
+import tempfile
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from drivegain.errors import InputError
+from drivegain.identify.blas import limited_blas_threads
+from drivegain.validation.document import write_document
+from drivegain.validation.estimators import monte_carlo
+from drivegain.validation.figures import figure_coverage, figure_gain_errors, figure_payload
+from drivegain.validation.paper import pipeline_tables
+from drivegain.validation.real import real_tx40, skip_reason
+from drivegain.validation.scenarios import (
+    RATE_HZ,
+    RESERVE_S,
+    SCENARIOS,
+    Scenario,
+    scenario_level,
+)
+from drivegain.validation.statistics import decimated_noise_factor, scenario_summary
+from drivegain.validation.world import make_world
+
+
+def _json_default(o: Any) -> Any:
+    """numpy scalars and arrays as JSON numbers and lists."""
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, np.floating | np.integer):
+        return o.item()
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def _cpus() -> int:
+    """CPUs this process may run on (the affinity mask where the platform has one)."""
+    return (
+        len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    )
+
+
+def check_options(seeds: int, budget_s: float) -> None:
+    """Refuse a study that cannot produce statistics.
+
+    Raises
+    ------
+    InputError
+        If ``seeds`` is below 2 (no spread) or ``budget_s`` (s) is not a positive number.
+    """
+    if seeds < 2:
+        raise InputError("--seeds must be at least 2", key="seeds")
+    if not (math.isfinite(budget_s) and budget_s > 0):
+        raise InputError("--budget must be a positive number of seconds", key="budget")
+
+
+def run_study(
+    *,
+    seeds: int,
+    budget_s: float,
+    out: Path,
+    rate_hz: float = RATE_HZ,
+    real: Path | None = None,
+    command: str = "",
+    scenarios: Sequence[Scenario] = SCENARIOS,
+    progress: Callable[[str], None] = print,
+) -> dict[str, Any]:
+    """The whole study; writes ``out/validation.md`` and ``out/validation/``.
+
+    Parameters
+    ----------
+    seeds
+        Noise seeds per scenario at most (≥ 2).
+    budget_s
+        Wall-clock budget, s: no new seed starts after ``budget_s`` minus
+        :data:`~drivegain.validation.scenarios.RESERVE_S`.
+    out
+        Folder receiving ``validation.md`` and ``validation/``.
+    rate_hz
+        Sample rate of the simulated recordings, Hz.
+    real
+        Folder of the real TX-40 recording, or ``None`` to skip that section.
+    command
+        The command line quoted in the document.
+    scenarios
+        Noise levels, each one of :data:`~drivegain.validation.scenarios.SCENARIOS`.
+    progress
+        Receives one line of progress now and then.
+
+    Returns
+    -------
+    dict
+        Everything written to ``results.json``.
+
+    Raises
+    ------
+    InputError
+        On too few seeds, a budget that is not positive or an unknown scenario.
+    """
+    check_options(seeds, budget_s)
+    for sc in scenarios:  # refuse an unknown scenario before the budget is spent, not after
+        scenario_level(sc)
+    t_start = time.perf_counter()
+    deadline = t_start + max(0.0, budget_s - RESERVE_S)
+    figures = out / "validation"
+    figures.mkdir(parents=True, exist_ok=True)
+    # One BLAS thread: OpenBLAS threads thrash on shared, busy cores and slow the study down.
+    with limited_blas_threads(1), tempfile.TemporaryDirectory(prefix="validate-") as tmp:
+        work = Path(tmp)
+        world = make_world(rate_hz)
+        progress(
+            f"Monte Carlo: up to {seeds} seeds x {len(scenarios)} scenarios "
+            f"(budget {budget_s:.0f} s)"
+        )
+        results = monte_carlo(world, seeds, deadline, scenarios, progress)
+        factor = decimated_noise_factor(world)
+        summary = {sc.key: scenario_summary(results[sc.key], world, factor) for sc in scenarios}
+        progress("paper's tables through drivegain identify")
+        tab = pipeline_tables(world, scenarios[0], 0, work, figures)
+        real_data = None
+        skipped = skip_reason(real)
+        if real is not None and skipped is None:
+            progress("real TX-40 recording")
+            real_data = real_tx40(real, work)
+        if skipped:
+            progress(f"real TX-40: skipped: {skipped}")
+        figure_gain_errors(summary, world.robot.joint_names, figures / "gain-errors.png")
+        figure_coverage(summary, results, world, figures / "coverage.png")
+        figure_payload(summary, scenarios[0].key, figures / "payload-errors.png")
+        elapsed = time.perf_counter() - t_start
+        data: dict[str, Any] = {
+            "meta": {
+                "command": command or "python benchmarks/validate.py",
+                "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+                "machine": f"{platform.machine()}, {_cpus()} CPUs, Python "
+                f"{platform.python_version()}, numpy {np.__version__}",
+                "seeds_requested": seeds,
+                "seeds_run": min(len(v) for v in results.values()),
+                "budget_s": budget_s,
+                "elapsed_s": elapsed,
+                "rate_hz": rate_hz,
+            },
+            "truth_gains": world.truth.gains.tolist(),
+            "apriori_gains": world.robot.apriori_gains.tolist(),
+            "monte_carlo": summary,
+            "tables": tab,
+            "real": real_data,
+            "real_skipped": skipped,
+            "noise_factor": factor,
+        }
+        (figures / "results.json").write_text(
+            json.dumps(data, indent=1, default=_json_default) + "\n", encoding="utf-8"
+        )
+        write_document(out / "validation.md", figures, data, world)
+    progress(f"wrote {out / 'validation.md'} and {figures}/ in {elapsed / 60:.1f} min")
+    return data
