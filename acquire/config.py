@@ -8,7 +8,8 @@ plus the ``[simulation]`` table: the acquisition code has no test branch.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field, fields
+from enum import StrEnum
 from pathlib import Path
 
 import numpy as np
@@ -16,73 +17,167 @@ import numpy as np
 from drivegain.acquire.supervision import Supervision
 from drivegain.config._toml import Table, read_toml
 from drivegain.config.robot import Robot, load_robot
-from drivegain.drivers.bus import BusConfig, bus_config_from_table
+from drivegain.config.schema import PathRule, derived, keys_of, load_table, setting
+from drivegain.drivers.bus import BusConfig, bus_config_from_table, default_tpdo_timeout
+from drivegain.drivers.clock import Clock
 from drivegain.drivers.ipcbus import INTERFACE as IPC_INTERFACE
-from drivegain.drivers.sim import SimConfig, sim_config_from_table
+from drivegain.drivers.simconfig import SimConfig, sim_config_from_table
 
 #: Buses a simulated cell may be attached to.
 SIMULATION_INTERFACES = ("virtual", IPC_INTERFACE)
 
-_ACQ_KEYS = {
-    "robot",
-    "period_s",
-    "eds",
-    "following_error",
-    "position_margin",
-    "velocity_margin",
-    "flush_interval_s",
-    "queue_s",
-    "settle_s",
-    "bus_load_warn",
-    "max_overruns",
-    "rt_priority",
-    "tpdo_timeout_s",
-}
-_DAEMON_KEYS = {"socket", "output_dir", "log_format", "idle_check_s", "watchdog_s"}
+
+class LogFormat(StrEnum):
+    """How the daemon writes its log lines: one JSON object per line, or plain text."""
+
+    JSON = "json"
+    TEXT = "text"
 
 
 @dataclass(frozen=True)
 class DaemonSettings:
-    """``[daemon]``: control socket, where runs are written, log style, idle check period (s)."""
+    """``[daemon]``: control socket, where runs are written, log style, idle check period (s).
 
-    socket: Path
-    output_dir: Path
-    log_format: str = "json"
-    idle_check_s: float = 0.1
-    watchdog_s: float | None = None
+    Locations are relative to the daemon's working directory.
+    """
+
+    socket: Path = field(metadata=setting(doc="control socket of the daemon"))
+    output_dir: Path = field(metadata=setting(doc="folder the runs are written to"))
+    log_format: LogFormat = field(
+        default=LogFormat.JSON, metadata=setting(doc="json (for journald) or text")
+    )
+    idle_check_s: float = field(
+        default=0.1, metadata=setting(unit="s", gt=0.0, doc="period of the idle bus check")
+    )
+    watchdog_s: float | None = field(
+        default=None,
+        metadata=setting(unit="s", gt=0.0, doc="systemd watchdog period (default from systemd)"),
+    )
+
+
+def _scalar_or_floats(table: Table, key: str) -> float | tuple[float, ...]:
+    if isinstance(table.raw(key), list):
+        return tuple(float(v) for v in table.get_floats(key))
+    return table.get_float(key)
 
 
 @dataclass(frozen=True)
-class AcquisitionConfig:
-    """A validated acquisition TOML.
+class SupervisionSettings:
+    """The supervision keys of the ``[acquisition]`` table (checked on every cycle)."""
 
-    ``period_s`` is the SYNC period (s); ``queue_s`` the seconds of cycles the recorder may hold
-    in memory; ``settle_s`` the time the final setpoint is held before disabling;
-    ``bus_load_warn`` the bus load fraction above which a run is allowed with a warning;
-    ``tpdo_timeout_s`` how long after a SYNC a TPDO missing is a fault (TPDOs later than one
-    period but within it are counted as late).
+    following_error: float | tuple[float, ...] = field(
+        default=0.05,
+        metadata=setting(
+            unit="rad",
+            parse=_scalar_or_floats,
+            doc="largest |setpoint - position|, one value or one per joint",
+        ),
+    )
+    position_margin: float = field(
+        default=0.02,
+        metadata=setting(unit="rad", ge=0.0, doc="how far past its limits a position may be"),
+    )
+    velocity_margin: float = field(
+        default=1.25,
+        metadata=setting(
+            gt=0.0,
+            ge=1.0,
+            message="must be >= 1 (a factor of the limit), got {value}",
+            doc="a speed above this factor times the velocity limit is a fault",
+        ),
+    )
+    max_overruns: int = field(
+        default=3,
+        metadata=setting(ge=1, doc="consecutive realtime deadline misses tolerated"),
+    )
+
+
+@dataclass(frozen=True)
+class AcquisitionSettings:
+    """The ``[acquisition]`` table as written (before the robot and the clock are known), but
+    for the keys of :class:`SupervisionSettings`.
+
+    ``queue_s`` is the seconds of cycles the recorder may hold in memory; ``settle_s`` the time
+    the final setpoint is held before disabling; ``bus_load_warn`` the bus load fraction above
+    which a run is allowed with a warning; ``tpdo_timeout_s`` how long after a SYNC a TPDO
+    missing is a fault (TPDOs later than one period but within it are counted as late).
     """
 
-    source: Path
-    robot_path: Path
-    robot: Robot
-    period_s: float
-    bus: BusConfig
-    simulation: SimConfig | None
-    supervision: Supervision
-    daemon: DaemonSettings | None
-    eds: Path | None = None
-    flush_interval_s: float = 1.0
-    queue_s: float = 10.0
-    settle_s: float = 0.2
-    bus_load_warn: float = 0.7
-    rt_priority: int = 0
-    tpdo_timeout_s: float = 0.02
+    robot_path: Path = field(
+        metadata=setting(key="robot", path=PathRule.EXISTING, doc="robot TOML, beside this file")
+    )
+    period_s: float = field(
+        default=0.004,
+        metadata=setting(
+            unit="s",
+            gt=0.0,
+            ge=1e-4,
+            le=0.1,
+            message="must be between 0.0001 and 0.1 s, got {value}",
+            doc="SYNC period",
+        ),
+    )
+    eds: Path | None = field(
+        default=None,
+        metadata=setting(path=PathRule.EXISTING, doc="EDS of the drives (default the shipped)"),
+    )
+    flush_interval_s: float = field(
+        default=1.0, metadata=setting(unit="s", gt=0.0, doc="log flushed and fsynced this often")
+    )
+    queue_s: float = field(
+        default=10.0, metadata=setting(unit="s", gt=0.0, doc="cycles the recorder may hold")
+    )
+    settle_s: float = field(
+        default=0.2, metadata=setting(unit="s", ge=0.0, doc="final setpoint held this long")
+    )
+    bus_load_warn: float = field(
+        default=0.7,
+        metadata=setting(
+            gt=0.0,
+            le=1.0,
+            message="must be a fraction <= 1, got {value}",
+            doc="bus load fraction above which a run is allowed with a warning",
+        ),
+    )
+    rt_priority: int = field(
+        default=0,
+        metadata=setting(
+            ge=0,
+            le=99,
+            message="SCHED_FIFO priority must be 0..99, got {value}",
+            doc="SCHED_FIFO priority of the cycle thread (0: off)",
+        ),
+    )
+    tpdo_timeout_s: float | None = field(
+        default=None,
+        metadata=setting(
+            unit="s",
+            gt=0.0,
+            doc="SYNC to a missing TPDO that is a fault (default: per clock, see "
+            "drivegain.drivers.bus.default_tpdo_timeout)",
+        ),
+    )
+
+
+@dataclass(frozen=True, kw_only=True)
+class AcquisitionConfig(AcquisitionSettings):
+    """A validated acquisition TOML: the ``[acquisition]`` settings and what they lead to.
+
+    ``tpdo_timeout_s`` is resolved (the file's, else the clock's default).
+    """
+
+    source: Path = field(metadata=derived(doc="the acquisition TOML"))
+    robot: Robot = field(metadata=derived(doc="the robot of robot_path"))
+    bus: BusConfig = field(metadata=derived(doc="the [bus] table"))
+    simulation: SimConfig | None = field(metadata=derived(doc="the [simulation] table"))
+    supervision: Supervision = field(metadata=derived(doc="the supervision settings"))
+    daemon: DaemonSettings | None = field(metadata=derived(doc="the [daemon] table"))
+    tpdo_timeout_s: float = field(metadata=derived(doc="SYNC to a missing TPDO, s"))
 
     @property
-    def clock(self) -> str:
-        """``lockstep`` or ``realtime``: hardware is always realtime."""
-        return self.simulation.clock if self.simulation is not None else "realtime"
+    def clock(self) -> Clock:
+        """Lockstep or realtime: hardware is always realtime."""
+        return self.simulation.clock if self.simulation is not None else Clock.REALTIME
 
     @property
     def queue_capacity(self) -> int:
@@ -102,15 +197,11 @@ def load_acquisition_config(path: str | Path) -> AcquisitionConfig:
     root = Table(read_toml(p), p)
     root.reject_unknown({"acquisition", "bus", "simulation", "daemon"})
     a = root.table("acquisition")
-    a.reject_unknown(_ACQ_KEYS)
     base = p.resolve().parent
-    robot_path = _existing(a, "robot", base)
-    robot = load_robot(robot_path)
-    period = a.get_float("period_s", 0.004, positive=True)
-    if not 1e-4 <= period <= 0.1:
-        raise a.error("period_s", f"must be between 0.0001 and 0.1 s, got {period}")
-    eds = _existing(a, "eds", base) if a.has("eds") else None
-    supervision = _supervision(a, robot)
+    settings = load_table(AcquisitionSettings, a, base_dir=base, also=keys_of(SupervisionSettings))
+    limits = load_table(SupervisionSettings, a, also=keys_of(AcquisitionSettings))
+    robot = load_robot(settings.robot_path)
+    supervision = _supervision(a, limits, robot)
     bus = bus_config_from_table(root.table("bus"))
     sim = sim_config_from_table(root.table("simulation"), base) if root.has("simulation") else None
     if sim is not None and bus.interface not in SIMULATION_INTERFACES:
@@ -120,83 +211,46 @@ def load_acquisition_config(path: str | Path) -> AcquisitionConfig:
             f"(drives in a child process), not {bus.interface}: simulated drives never go on a "
             "real bus",
         )
-    daemon = _daemon(root.table("daemon")) if root.has("daemon") else None
-    warn = a.get_float("bus_load_warn", 0.7, positive=True)
-    if warn > 1.0:
-        raise a.error("bus_load_warn", f"must be a fraction <= 1, got {warn}")
-    sim_clock = sim.clock if sim is not None else "realtime"
-    # lockstep: the simulator takes the time it takes on a busy machine; realtime: a drive
-    # silent for several periods is lost
-    tpdo_default = 2.0 if sim_clock == "lockstep" else max(5 * period, 0.01)
-    tpdo_timeout = a.get_float("tpdo_timeout_s", tpdo_default, positive=True)
-    if sim_clock == "realtime" and tpdo_timeout < period:
+    daemon = load_table(DaemonSettings, root.table("daemon")) if root.has("daemon") else None
+    clock = sim.clock if sim is not None else Clock.REALTIME
+    period = settings.period_s
+    tpdo_timeout = settings.tpdo_timeout_s
+    if tpdo_timeout is None:
+        tpdo_timeout = default_tpdo_timeout(clock, period)
+    elif clock == Clock.REALTIME and tpdo_timeout < period:
         raise a.error(
             "tpdo_timeout_s", f"must be at least one period ({period} s), got {tpdo_timeout}"
         )
-    prio = a.get_int("rt_priority", 0, minimum=0)
-    if prio > 99:
-        raise a.error("rt_priority", f"SCHED_FIFO priority must be 0..99, got {prio}")
+    table_values = {f.name: getattr(settings, f.name) for f in fields(AcquisitionSettings)}
     return AcquisitionConfig(
-        source=p,
-        robot_path=robot_path,
-        robot=robot,
-        period_s=period,
-        bus=bus,
-        simulation=sim,
-        supervision=supervision,
-        daemon=daemon,
-        eds=eds,
-        flush_interval_s=a.get_float("flush_interval_s", 1.0, positive=True),
-        queue_s=a.get_float("queue_s", 10.0, positive=True),
-        settle_s=_nonnegative(a, "settle_s", 0.2),
-        bus_load_warn=warn,
-        rt_priority=prio,
-        tpdo_timeout_s=tpdo_timeout,
+        **{
+            **table_values,
+            "source": p,
+            "robot": robot,
+            "bus": bus,
+            "simulation": sim,
+            "supervision": supervision,
+            "daemon": daemon,
+            "tpdo_timeout_s": tpdo_timeout,
+        }
     )
 
 
-def _existing(t: Table, key: str, base: Path) -> Path:
-    path = Path(t.get_str(key))
-    path = path if path.is_absolute() else base / path
-    if not path.is_file():
-        raise t.error(key, f"file not found: {path}")
-    return path
-
-
-def _nonnegative(t: Table, key: str, default: float) -> float:
-    v = t.get_float(key, default)
-    if v < 0:
-        raise t.error(key, f"must be >= 0, got {v}")
-    return v
-
-
-def _supervision(a: Table, robot: Robot) -> Supervision:
-    if not a.has("following_error"):
-        fe = np.full(robot.n, 0.05)
-    elif isinstance(a.raw("following_error"), list):
-        fe = a.get_floats("following_error", length=robot.n)
+def _supervision(a: Table, settings: SupervisionSettings, robot: Robot) -> Supervision:
+    if isinstance(settings.following_error, tuple):
+        if len(settings.following_error) != robot.n:
+            raise a.error(
+                "following_error",
+                f"expected {robot.n} values, got {len(settings.following_error)}",
+            )
+        fe = np.array(settings.following_error)
     else:
-        fe = np.full(robot.n, a.get_float("following_error"))
+        fe = np.full(robot.n, settings.following_error)
     if np.any(fe <= 0):
         raise a.error("following_error", f"must be > 0 rad, got {fe.tolist()}")
-    margin = a.get_float("velocity_margin", 1.25, positive=True)
-    if margin < 1.0:
-        raise a.error("velocity_margin", f"must be >= 1 (a factor of the limit), got {margin}")
     return Supervision(
         following_error=fe,
-        position_margin=_nonnegative(a, "position_margin", 0.02),
-        velocity_margin=margin,
-        max_overruns=a.get_int("max_overruns", 3, minimum=1),
-    )
-
-
-def _daemon(d: Table) -> DaemonSettings:
-    d.reject_unknown(_DAEMON_KEYS)
-    watchdog = d.get_float("watchdog_s", positive=True) if d.has("watchdog_s") else None
-    return DaemonSettings(
-        socket=Path(d.get_str("socket")),
-        output_dir=Path(d.get_str("output_dir")),
-        log_format=d.get_str("log_format", "json", choices=("json", "text")),
-        idle_check_s=d.get_float("idle_check_s", 0.1, positive=True),
-        watchdog_s=watchdog,
+        position_margin=settings.position_margin,
+        velocity_margin=settings.velocity_margin,
+        max_overruns=settings.max_overruns,
     )

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from drivegain.config._toml import Table, read_toml
 from drivegain.config.inertia import physical_violation
+from drivegain.config.schema import load_table, setting
 
 #: Payload parameter names in the order of the regressor's inertial columns of one link.
 PAYLOAD_PARAMS = ("XX", "XY", "XZ", "YY", "YZ", "ZZ", "MX", "MY", "MZ", "M")
@@ -51,6 +52,25 @@ class Payload:
         return np.array([p in self.known for p in PAYLOAD_PARAMS])
 
 
+@dataclass(frozen=True)
+class PayloadTable:
+    """The ``[payload]`` table as written (contracts §3); :class:`Payload` is what it describes."""
+
+    name: str = field(metadata=setting(doc="payload name"))
+    link: int = field(metadata=setting(ge=1, doc="link it is fixed to, 1-based"))
+    mass: float | None = field(default=None, metadata=setting(unit="kg", gt=0.0, doc="mass"))
+    first_moment: np.ndarray | None = field(
+        default=None, metadata=setting(unit="kg·m", length=3, doc="MX MY MZ in the link frame")
+    )
+    inertia: np.ndarray | None = field(
+        default=None,
+        metadata=setting(unit="kg·m²", length=6, doc="XX XY XZ YY YZ ZZ at the frame origin"),
+    )
+    known: tuple[str, ...] = field(
+        default=("mass",), metadata=setting(doc="parameters known to IDIM-WTLS (others identified)")
+    )
+
+
 def load_payload(path: str | Path, n_links: int | None = None) -> Payload:
     """Load and validate a payload file.
 
@@ -60,24 +80,28 @@ def load_payload(path: str | Path, n_links: int | None = None) -> Payload:
         The TOML file.
     n_links
         Number of links of the robot, to check ``link`` against (optional).
+
+    Raises
+    ------
+    ConfigError
+        One line naming the file and the key at fault.
     """
     p = Path(path)
     root = Table(read_toml(p), p)
     root.reject_unknown({"payload"})
     t = root.table("payload")
-    t.reject_unknown({"name", "link", "mass", "first_moment", "inertia", "known"})
-    link = t.get_int("link", minimum=1)
-    if n_links is not None and link > n_links:
-        raise t.error("link", f"the robot has {n_links} links, got {link}")
+    table = load_table(PayloadTable, t)
+    if n_links is not None and table.link > n_links:
+        raise t.error("link", f"the robot has {n_links} links, got {table.link}")
     values = np.full(10, np.nan)
-    if t.has("mass"):
-        values[9] = t.get_float("mass", positive=True)
-    if t.has("first_moment"):
-        values[6:9] = t.get_floats("first_moment", length=3)
-    if t.has("inertia"):
-        values[0:6] = t.get_floats("inertia", length=6)
+    if table.mass is not None:
+        values[9] = table.mass
+    if table.first_moment is not None:
+        values[6:9] = table.first_moment
+    if table.inertia is not None:
+        values[0:6] = table.inertia
     known = []
-    for name in t.get_strs("known", default=["mass"]):
+    for name in table.known:
         canon = _KNOWN_ALIASES.get(name.lower())
         if canon is None:
             raise t.error("known", f"unknown parameter {name!r} (use mass, MX.., XX..)")
@@ -92,4 +116,4 @@ def load_payload(path: str | Path, n_links: int | None = None) -> Payload:
             raise t.error("inertia", why)
     elif np.isnan(values[9]):
         raise t.error("mass", "missing")
-    return Payload(name=t.get_str("name"), link=link, values=values, known=tuple(known), source=p)
+    return Payload(name=table.name, link=table.link, values=values, known=tuple(known), source=p)

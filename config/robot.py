@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from drivegain.config._toml import Table, read_toml
+from drivegain.config.schema import derived, load_table, setting
 from drivegain.errors import ConfigError
 
 
@@ -23,11 +24,23 @@ class WristFriction(StrEnum):
 class MDH:
     """One row of a modified Denavit-Hartenberg table (Khalil): lengths in m, angles in rad."""
 
-    sigma: int
-    alpha: float
-    d: float
-    theta_offset: float
-    r: float
+    sigma: int = field(
+        metadata=setting(
+            choices=(0, 1),
+            message="must be 0 (revolute) or 1 (prismatic), got {value}",
+            doc="0 revolute, 1 prismatic",
+        )
+    )
+    alpha: float = field(metadata=setting(unit="rad", doc="twist about x of the previous frame"))
+    d: float = field(metadata=setting(unit="m", doc="distance along x of the previous frame"))
+    theta_offset: float = field(metadata=setting(unit="rad", doc="offset of the joint angle"))
+    r: float = field(metadata=setting(unit="m", doc="distance along z"))
+
+
+def _ordered_limits(limits: tuple[float, ...]) -> str | None:
+    if limits[0] < limits[1]:
+        return None
+    return f"lower must be below upper, got {list(limits)}"
 
 
 @dataclass(frozen=True)
@@ -39,17 +52,29 @@ class Joint:
     ``rated_current`` in A; ``apriori_gain`` in N·m/A at the joint.
     """
 
-    name: str
-    mdh: MDH | None
-    position_limits: tuple[float, float]
-    velocity_limit: float
-    acceleration_limit: float
-    jerk_limit: float
-    gear_ratio: float
-    encoder_counts: int
-    rated_current: float
-    node_id: int
-    apriori_gain: float
+    name: str = field(metadata=setting(doc="joint name"))
+    mdh: MDH | None = field(metadata=setting(doc="MDH row (required without a URDF)"))
+    position_limits: tuple[float, float] = field(
+        metadata=setting(unit="rad", length=2, check=_ordered_limits, doc="[lower, upper]")
+    )
+    velocity_limit: float = field(metadata=setting(unit="rad/s", gt=0.0, doc="velocity limit"))
+    acceleration_limit: float = field(
+        metadata=setting(unit="rad/s²", gt=0.0, doc="acceleration limit")
+    )
+    jerk_limit: float = field(metadata=setting(unit="rad/s³", gt=0.0, doc="jerk limit"))
+    gear_ratio: float = field(
+        metadata=setting(nonzero=True, doc="motor angle / joint angle, signed")
+    )
+    encoder_counts: int = field(metadata=setting(ge=1, doc="encoder counts per motor turn"))
+    rated_current: float = field(metadata=setting(unit="A", gt=0.0, doc="rated current"))
+    node_id: int = field(
+        metadata=setting(
+            ge=1, le=127, message="CANopen node id must be 1..127, got {value}", doc="node id"
+        )
+    )
+    apriori_gain: float = field(
+        metadata=setting(unit="N·m/A", nonzero=True, doc="a priori drive gain, joint side")
+    )
 
 
 @dataclass(frozen=True)
@@ -63,17 +88,31 @@ class Coupling:
     joint: int
 
 
+def _urdf(table: Table, key: str) -> Path:
+    urdf = (Path(table.file).parent / table.get_str(key)).resolve()
+    if not urdf.is_file():
+        raise table.error(key, f"file not found: {urdf}")
+    return urdf
+
+
 @dataclass(frozen=True)
 class Robot:
     """A validated robot description. Arrays are indexed by joint (0-based)."""
 
-    name: str
-    joints: tuple[Joint, ...]
-    couplings: tuple[Coupling, ...] = ()
-    gravity: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, -9.81]))
-    wrist_friction: WristFriction = WristFriction.PHYSICAL
-    urdf: Path | None = None
-    source: Path | None = None
+    name: str = field(metadata=setting(doc="robot name"))
+    joints: tuple[Joint, ...] = field(metadata=derived(doc="the [[joint]] tables"))
+    couplings: tuple[Coupling, ...] = field(default=(), metadata=derived(doc="[[coupling]]"))
+    gravity: np.ndarray = field(
+        default_factory=lambda: np.array([0.0, 0.0, -9.81]),
+        metadata=setting(unit="m/s²", length=3, doc="gravity in the base frame"),
+    )
+    wrist_friction: WristFriction = field(
+        default=WristFriction.PHYSICAL, metadata=setting(doc="friction form of a coupled motor")
+    )
+    urdf: Path | None = field(
+        default=None, metadata=setting(parse=_urdf, doc="URDF file instead of the MDH rows")
+    )
+    source: Path | None = field(default=None, metadata=derived(doc="the robot TOML"))
 
     @property
     def n(self) -> int:
@@ -126,62 +165,6 @@ class Robot:
         return k
 
 
-_JOINT_KEYS = {
-    "name",
-    "mdh",
-    "position_limits",
-    "velocity_limit",
-    "acceleration_limit",
-    "jerk_limit",
-    "gear_ratio",
-    "encoder_counts",
-    "rated_current",
-    "node_id",
-    "apriori_gain",
-}
-
-
-def _load_joint(t: Table, need_mdh: bool) -> Joint:
-    t.reject_unknown(_JOINT_KEYS)
-    mdh = None
-    if need_mdh or t.has("mdh"):
-        m = t.table("mdh")
-        m.reject_unknown({"sigma", "alpha", "d", "theta_offset", "r"})
-        sigma = m.get_int("sigma")
-        if sigma not in (0, 1):
-            raise m.error("sigma", f"must be 0 (revolute) or 1 (prismatic), got {sigma}")
-        mdh = MDH(
-            sigma=sigma,
-            alpha=m.get_float("alpha"),
-            d=m.get_float("d"),
-            theta_offset=m.get_float("theta_offset"),
-            r=m.get_float("r"),
-        )
-    lim = t.get_floats("position_limits", length=2)
-    if not lim[0] < lim[1]:
-        raise t.error("position_limits", f"lower must be below upper, got {lim.tolist()}")
-    return Joint(
-        name=t.get_str("name"),
-        mdh=mdh,
-        position_limits=(float(lim[0]), float(lim[1])),
-        velocity_limit=t.get_float("velocity_limit", positive=True),
-        acceleration_limit=t.get_float("acceleration_limit", positive=True),
-        jerk_limit=t.get_float("jerk_limit", positive=True),
-        gear_ratio=t.get_float("gear_ratio", nonzero=True),
-        encoder_counts=t.get_int("encoder_counts", minimum=1),
-        rated_current=t.get_float("rated_current", positive=True),
-        node_id=_node_id(t),
-        apriori_gain=t.get_float("apriori_gain", nonzero=True),
-    )
-
-
-def _node_id(t: Table) -> int:
-    nid = t.get_int("node_id")
-    if not 1 <= nid <= 127:
-        raise t.error("node_id", f"CANopen node id must be 1..127, got {nid}")
-    return nid
-
-
 def load_robot(path: str | Path) -> Robot:
     """Load and validate a robot description.
 
@@ -194,13 +177,12 @@ def load_robot(path: str | Path) -> Robot:
     root = Table(read_toml(p), p)
     root.reject_unknown({"robot", "coupling", "joint"})
     r = root.table("robot")
-    r.reject_unknown({"name", "gravity", "wrist_friction", "urdf"})
-    urdf = None
-    if r.has("urdf"):
-        urdf = (p.parent / r.get_str("urdf")).resolve()
-        if not urdf.is_file():
-            raise r.error("urdf", f"file not found: {urdf}")
-    joints = tuple(_load_joint(t, need_mdh=urdf is None) for t in root.tables("joint"))
+    joint_tables = root.tables("joint")
+    # "mdh" may be absent: checked below, once [robot] says whether a URDF replaces it
+    joints = tuple(
+        load_table(Joint, t) if t.has("mdh") else load_table(Joint, t, mdh=None)
+        for t in joint_tables
+    )
     if not joints:
         raise root.error("joint", "at least one [[joint]] is required")
     _unique(root, "joint", [j.name for j in joints], "name")
@@ -217,18 +199,12 @@ def load_robot(path: str | Path) -> Robot:
         couplings.append(Coupling(motor=motor - 1, joint=joint - 1))
     if len({c.motor for c in couplings}) != len(couplings):
         raise root.error("coupling", "at most one coupling per motor")
-    gravity = r.get_floats("gravity", length=3) if r.has("gravity") else np.array([0, 0, -9.81])
-    return Robot(
-        name=r.get_str("name"),
-        joints=joints,
-        couplings=tuple(couplings),
-        gravity=gravity,
-        wrist_friction=WristFriction(
-            r.get_str("wrist_friction", default="physical", choices=("physical", "paper"))
-        ),
-        urdf=urdf,
-        source=p,
-    )
+    robot = load_table(Robot, r, joints=joints, couplings=tuple(couplings), source=p)
+    if robot.urdf is None:
+        for t, j in zip(joint_tables, joints, strict=True):
+            if j.mdh is None:
+                t.raw("mdh")  # raises "missing": without a URDF every joint needs its MDH row
+    return robot
 
 
 def _unique(t: Table, name: str, values: list[object], what: str) -> None:

@@ -2,78 +2,82 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from drivegain.config._toml import Table, read_toml
 from drivegain.config.inertia import physical_violation
+from drivegain.config.schema import SettingError, derived, load_table, setting
 
 
 @dataclass(frozen=True)
 class LinkTruth:
-    """True parameters of one link and its drive chain (kg, kg·m, kg·m², N·m·s/rad, N·m)."""
+    """True parameters of one link and its drive chain (a ``[[link]]`` table).
 
-    mass: float
-    first_moment: np.ndarray
-    inertia: np.ndarray
-    Ia: float
-    Fv: float
-    Fc: float
-    offset: float
+    Raises
+    ------
+    SettingError
+        The inertial parameters are not those of a real body (names ``inertia``).
+    """
+
+    mass: float = field(metadata=setting(unit="kg", gt=0.0, doc="mass"))
+    first_moment: np.ndarray = field(
+        metadata=setting(unit="kg·m", length=3, doc="MX MY MZ in the link frame")
+    )
+    inertia: np.ndarray = field(
+        metadata=setting(unit="kg·m²", length=6, doc="XX XY XZ YY YZ ZZ at the frame origin")
+    )
+    Ia: float = field(metadata=setting(unit="kg·m²", doc="rotor inertia, joint side"))
+    Fv: float = field(metadata=setting(unit="N·m·s/rad", doc="viscous friction"))
+    Fc: float = field(metadata=setting(unit="N·m", doc="Coulomb friction"))
+    offset: float = field(default=0.0, metadata=setting(unit="N·m", doc="torque offset"))
+
+    def __post_init__(self) -> None:
+        why = physical_violation(self.mass, self.first_moment, self.inertia)
+        if why is not None:
+            raise SettingError("inertia", why)
 
 
 @dataclass(frozen=True)
 class Truth:
-    """The simulator's truth: links, coupled-motor friction and true drive gains (N·m/A)."""
+    """The simulator's truth (the ``[truth]`` table and the links): links, coupled-motor
+    friction and true drive gains."""
 
-    robot: str
-    links: tuple[LinkTruth, ...]
-    gains: np.ndarray
-    fvm: float
-    fcm: float
-    source: Path | None = None
+    robot: str = field(metadata=setting(doc="robot name"))
+    links: tuple[LinkTruth, ...] = field(metadata=derived(doc="the [[link]] tables"))
+    gains: np.ndarray = field(
+        metadata=setting(unit="N·m/A", doc="true drive gains, one per link, non-zero")
+    )
+    fvm: float = field(
+        default=0.0, metadata=setting(key="fvm6", unit="N·m·s/rad", doc="coupled motor viscous")
+    )
+    fcm: float = field(
+        default=0.0, metadata=setting(key="fcm6", unit="N·m", doc="coupled motor Coulomb")
+    )
+    source: Path | None = field(default=None, metadata=derived(doc="the truth TOML"))
 
 
 def load_truth(path: str | Path, n_links: int | None = None) -> Truth:
-    """Load and validate a simulation truth file."""
+    """Load and validate a simulation truth file.
+
+    Raises
+    ------
+    ConfigError
+        One line naming the file and the key at fault.
+    """
     p = Path(path)
     root = Table(read_toml(p), p)
     root.reject_unknown({"truth", "link"})
     t = root.table("truth")
-    t.reject_unknown({"robot", "gains", "fvm6", "fcm6"})
-    links = []
-    for lt in root.tables("link"):
-        lt.reject_unknown({"mass", "first_moment", "inertia", "Ia", "Fv", "Fc", "offset"})
-        mass = lt.get_float("mass", positive=True)
-        ms = lt.get_floats("first_moment", length=3)
-        inertia = lt.get_floats("inertia", length=6)
-        why = physical_violation(mass, ms, inertia)
-        if why is not None:
-            raise lt.error("inertia", why)
-        links.append(
-            LinkTruth(
-                mass=mass,
-                first_moment=ms,
-                inertia=inertia,
-                Ia=lt.get_float("Ia"),
-                Fv=lt.get_float("Fv"),
-                Fc=lt.get_float("Fc"),
-                offset=lt.get_float("offset", default=0.0),
-            )
-        )
+    links = tuple(load_table(LinkTruth, lt) for lt in root.tables("link"))
     n = len(links)
     if n_links is not None and n != n_links:
         raise root.error("link", f"expected {n_links} [[link]] tables, got {n}")
-    gains = t.get_floats("gains", length=n)
-    if np.any(gains == 0.0):
+    truth = load_table(Truth, t, links=links, source=p)
+    if len(truth.gains) != n:
+        raise t.error("gains", f"expected {n} values, got {len(truth.gains)}")
+    if np.any(truth.gains == 0.0):
         raise t.error("gains", "gains must be non-zero")
-    return Truth(
-        robot=t.get_str("robot"),
-        links=tuple(links),
-        gains=gains,
-        fvm=t.get_float("fvm6", default=0.0),
-        fcm=t.get_float("fcm6", default=0.0),
-        source=p,
-    )
+    return truth

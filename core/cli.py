@@ -14,10 +14,13 @@ import argparse
 import importlib
 import logging
 import math
+import signal
 import sys
+import threading
 import traceback
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from types import FrameType
 from typing import Any, NoReturn
 
 from drivegain import __version__
@@ -89,6 +92,16 @@ FRACTION = _number(float, 1e-3, 1.0)
 RATE = _number(float, 1.0, 100_000.0, "Hz")
 POSITIVE = _number(float, 1e-9, 1e9)
 DECIMATE = _number(int, 1, 10_000)
+
+
+class Terminated(BaseException):
+    """SIGTERM reached a command outside an acquisition (which stops the robot itself): raised
+    in the main thread so every ``finally`` and context manager runs, leaving no staging folder
+    or temporary file behind."""
+
+
+def _terminate(signum: int, frame: FrameType | None) -> None:
+    raise Terminated
 
 
 class NotAvailable(DrivegainError):
@@ -255,13 +268,18 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; returns the exit status."""
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # --help, --version, or a bad option (already reported)
+        return exc.code if isinstance(exc.code, int) else 2
     args.debug = getattr(args, "debug", False)
     logging.basicConfig(
         level=logging.DEBUG if args.debug else logging.INFO,
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
         stream=sys.stderr,
     )
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _terminate) if main_thread else None
     try:
         _check_outputs(args)
         return int(_handler(args.handler)(args))
@@ -290,6 +308,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("drivegain: interrupted", file=sys.stderr)
         return 130
+    except Terminated:
+        print("drivegain: terminated", file=sys.stderr)
+        return 128 + signal.SIGTERM
     except Exception as exc:  # a bug: one line for users, the traceback with --debug
         if args.debug:
             traceback.print_exc()
@@ -298,6 +319,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             file=sys.stderr,
         )
         return 1
+    finally:
+        if main_thread:
+            signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":

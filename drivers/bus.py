@@ -17,6 +17,8 @@ import can
 import canopen
 
 from drivegain.config._toml import Table
+from drivegain.config.schema import SettingError, load_table, setting
+from drivegain.drivers.clock import Clock
 from drivegain.errors import BusError
 
 #: Bitrates a CAN 2.0 controller is normally configured for (bit/s).
@@ -26,69 +28,103 @@ STANDARD_BITRATES = (10_000, 20_000, 50_000, 100_000, 125_000, 250_000, 500_000,
 NOTIFIER_CYCLE_S = 0.05
 
 
+def _known_interface(name: str) -> str | None:
+    if name in can.VALID_INTERFACES:
+        return None
+    return f"unknown python-can interface {name!r} (e.g. virtual, socketcan, pcan, kvaser)"
+
+
+def _channel(table: Table, key: str) -> str:
+    raw = table.raw(key)
+    if isinstance(raw, bool) or not isinstance(raw, str | int):
+        raise table.error(key, f"expected a string or an integer, got {raw!r}")
+    if not str(raw):
+        raise table.error(key, "must not be empty")
+    return str(raw)
+
+
+def _no_reserved(options: dict[str, Any]) -> None:
+    reserved = sorted({"interface", "channel", "bitrate"} & set(options))
+    if reserved:
+        raise SettingError(reserved[0], "set this in [bus] itself, not in [bus.options]")
+
+
 @dataclass(frozen=True)
 class BusConfig:
-    """How to open the CAN bus.
+    """How to open the CAN bus: the ``[bus]`` table.
 
     Attributes
     ----------
     interface
         python-can interface name (``virtual``, ``socketcan``, ``pcan``, ``kvaser``, ...).
     channel
-        Interface channel (``can0``, ``PCAN_USBBUS1``, a virtual channel name, ...).
+        Interface channel (``can0``, ``PCAN_USBBUS1``, a virtual channel name, ...); an integer
+        in the file is read as its text.
     bitrate
-        Nominal bitrate, bit/s (ignored by the virtual interface, used for the bus load).
+        Nominal bitrate, bit/s, one of :data:`STANDARD_BITRATES` (ignored by the virtual
+        interface, used for the bus load).
     extra
         Further keyword arguments for :class:`can.Bus` (the ``[bus.options]`` table).
     """
 
-    interface: str
-    channel: str
-    bitrate: int = 1_000_000
-    extra: dict[str, Any] = field(default_factory=dict)
-
-
-_BUS_KEYS = {"interface", "channel", "bitrate", "options"}
+    interface: str = field(
+        metadata=setting(
+            doc="python-can interface (virtual, socketcan, pcan, ...)", check=_known_interface
+        )
+    )
+    channel: str = field(
+        metadata=setting(doc="interface channel (can0, a virtual channel, ...)", parse=_channel)
+    )
+    bitrate: int = field(
+        default=1_000_000,
+        metadata=setting(unit="bit/s", ge=1, choices=STANDARD_BITRATES, doc="nominal bitrate"),
+    )
+    extra: dict[str, Any] = field(
+        default_factory=dict,
+        metadata=setting(
+            key="options",
+            check=_no_reserved,
+            doc="further keyword arguments of can.Bus (the [bus.options] table)",
+        ),
+    )
 
 
 def bus_config_from_table(table: Table) -> BusConfig:
-    """Read the ``[bus]`` table of an acquisition TOML.
-
-    Keys: ``interface`` (str, a python-can interface name), ``channel`` (str or int),
-    ``bitrate`` (int, bit/s, default 1 000 000, one of :data:`STANDARD_BITRATES`), optional
-    ``options`` (table of extra :class:`can.Bus` keyword arguments).
+    """Read the ``[bus]`` table of an acquisition TOML (keys: see :class:`BusConfig`).
 
     Raises
     ------
     ConfigError
         One line naming the file and key at fault.
     """
-    table.reject_unknown(_BUS_KEYS)
-    interface = table.get_str("interface")
-    if interface not in can.VALID_INTERFACES:
-        raise table.error(
-            "interface",
-            f"unknown python-can interface {interface!r} (e.g. virtual, socketcan, pcan, kvaser)",
-        )
-    raw_channel = table.raw("channel")
-    if isinstance(raw_channel, bool) or not isinstance(raw_channel, str | int):
-        raise table.error("channel", f"expected a string or an integer, got {raw_channel!r}")
-    channel = str(raw_channel)
-    if not channel:
-        raise table.error("channel", "must not be empty")
-    bitrate = table.get_int("bitrate", default=1_000_000, minimum=1)
-    if bitrate not in STANDARD_BITRATES:
-        allowed = ", ".join(str(b) for b in STANDARD_BITRATES)
-        raise table.error("bitrate", f"must be one of {allowed}, got {bitrate}")
-    extra: dict[str, Any] = {}
-    if table.has("options"):
-        options = table.table("options")
-        reserved = {"interface", "channel", "bitrate"} & set(options.data)
-        if reserved:
-            name = sorted(reserved)[0]
-            raise options.error(name, "set this in [bus] itself, not in [bus.options]")
-        extra = dict(options.data)
-    return BusConfig(interface=interface, channel=channel, bitrate=bitrate, extra=extra)
+    return load_table(BusConfig, table)
+
+
+# --- cycle time-outs ------------------------------------------------------------------------------
+
+#: SYNC to the last TPDO of a cycle in lockstep (s): the simulator takes the time it takes on a
+#: busy machine. Also the default of the master's ``Timeouts.tpdo_s``.
+TPDO_TIMEOUT_LOCKSTEP_S = 2.0
+#: SYNC to the last TPDO in realtime, in periods (a drive silent for several periods is lost) ...
+TPDO_TIMEOUT_REALTIME_PERIODS = 5
+#: ... and never below this (s).
+TPDO_TIMEOUT_REALTIME_MIN_S = 0.01
+
+
+def default_tpdo_timeout(clock: Clock, period_s: float) -> float:
+    """The TPDO time-out of a run when the configuration sets none, s.
+
+    Parameters
+    ----------
+    clock
+        Lockstep: :data:`TPDO_TIMEOUT_LOCKSTEP_S`; realtime: :data:`TPDO_TIMEOUT_REALTIME_PERIODS`
+        periods, at least :data:`TPDO_TIMEOUT_REALTIME_MIN_S`.
+    period_s
+        SYNC period, s.
+    """
+    if clock == Clock.LOCKSTEP:
+        return TPDO_TIMEOUT_LOCKSTEP_S
+    return max(TPDO_TIMEOUT_REALTIME_PERIODS * period_s, TPDO_TIMEOUT_REALTIME_MIN_S)
 
 
 def open_bus(cfg: BusConfig) -> can.BusABC:

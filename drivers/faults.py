@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from enum import StrEnum
 
 from drivegain.config._toml import Table
+from drivegain.config.schema import SettingError, load_table, setting
 from drivegain.drivers.objects import EmcyCode
 
 
@@ -30,13 +31,8 @@ class FaultKind(StrEnum):
     BUS_ERROR = "bus_error"
 
 
-class FaultValueError(ValueError):
+class FaultValueError(SettingError):
     """An impossible fault specification; ``key`` names the field at fault."""
-
-    def __init__(self, key: str, message: str):
-        super().__init__(f"{key}: {message}")
-        self.key = key
-        self.message = message
 
 
 DEFAULT_CODES = {
@@ -65,12 +61,22 @@ class FaultSpec:
         TPDO number (1 or 2) for ``tpdo_missing`` / ``tpdo_late``; ``None`` = every TPDO.
     """
 
-    kind: FaultKind
-    node: int | None = None
-    at_s: float = 0.0
-    code: int | None = None
-    delay_s: float = 0.0
-    tpdo: int | None = None
+    kind: FaultKind = field(metadata=setting(doc="what happens"))
+    node: int | None = field(
+        default=None, metadata=setting(doc="CANopen node id of the drive (none for bus_error)")
+    )
+    at_s: float = field(
+        default=0.0, metadata=setting(unit="s", doc="simulated time after the first SYNC")
+    )
+    code: int | None = field(
+        default=None, metadata=setting(doc="error code of emcy / fault (default per kind)")
+    )
+    delay_s: float = field(
+        default=0.0, metadata=setting(unit="s", doc="delay of the TPDOs of tpdo_late")
+    )
+    tpdo: int | None = field(
+        default=None, metadata=setting(doc="TPDO number 1 or 2 (default every TPDO)")
+    )
 
     def __post_init__(self) -> None:
         if self.kind == FaultKind.BUS_ERROR:
@@ -95,23 +101,12 @@ class FaultSpec:
         return DEFAULT_CODES.get(self.kind)
 
 
-_FAULT_KEYS = {"kind", "node", "at_s", "code", "delay_s", "tpdo"}
-
-
 def fault_from_table(t: Table) -> FaultSpec:
-    """One ``[[simulation.fault]]`` table (keys kind, node, at_s, code, delay_s, tpdo)."""
-    t.reject_unknown(_FAULT_KEYS)
-    kind_name = t.get_str("kind", choices=tuple(k.value for k in FaultKind))
-    kind = FaultKind(kind_name)
-    node = t.get_int("node") if t.has("node") else None
-    try:
-        return FaultSpec(
-            kind=kind,
-            node=node,
-            at_s=t.get_float("at_s", default=0.0),
-            code=t.get_int("code") if t.has("code") else None,
-            delay_s=t.get_float("delay_s", default=0.0),
-            tpdo=t.get_int("tpdo") if t.has("tpdo") else None,
-        )
-    except FaultValueError as exc:
-        raise t.error(exc.key, exc.message) from None
+    """One ``[[simulation.fault]]`` table (keys kind, node, at_s, code, delay_s, tpdo).
+
+    Raises
+    ------
+    ConfigError
+        One line naming the file and the key at fault.
+    """
+    return load_table(FaultSpec, t)

@@ -31,7 +31,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -40,24 +40,19 @@ import canopen
 import numpy as np
 from canopen.objectdictionary import import_od
 
-from drivegain.config import load_payload, load_truth, resource_path
-from drivegain.config._toml import Table
+from drivegain.config import load_payload, load_truth
 from drivegain.config.robot import Robot, WristFriction
 from drivegain.drivers import objects as ob
 from drivegain.drivers.bus import BusConfig, open_network
-from drivegain.drivers.faults import FaultKind, FaultSpec, fault_from_table
-from drivegain.drivers.physics import (
-    Dynamics,
-    RobotPhysics,
-    design_gains,
-    truth_parameters,
-)
+from drivegain.drivers.clock import Clock
+from drivegain.drivers.faults import FaultKind, FaultSpec
+from drivegain.drivers.physics import Dynamics, RobotPhysics, design_gains, truth_parameters
+from drivegain.drivers.simconfig import SimConfig
 from drivegain.drivers.simdrive import NmtState, SimDrive
 from drivegain.errors import ConfigError, DriveError
 
 logger = logging.getLogger(__name__)
 
-CLOCKS = ("lockstep", "realtime")
 #: Following error window of the simulated drives, joint side (rad), and its time-out (ms).
 FOLLOWING_ERROR_WINDOW_RAD = 0.1
 FOLLOWING_ERROR_TIMEOUT_MS = 20
@@ -82,131 +77,6 @@ INTEGRATOR_WAKE_S = 0.001
 MAX_LOOP_PHASE = 0.4
 #: socketcan error class bit for bus-off, as python-can reports it in ``arbitration_id``.
 CAN_ERR_BUSOFF = 0x40
-
-
-def _default_truth() -> Path:
-    return resource_path("sim/tx40-truth.toml")
-
-
-@dataclass(frozen=True)
-class SimConfig:
-    """The ``[simulation]`` table.
-
-    Attributes
-    ----------
-    clock
-        ``lockstep`` or ``realtime``.
-    truth
-        Simulation truth file (true parameters and gains).
-    payload
-        Payload mounted on the simulated robot, if any.
-    seed
-        Seed of the current noise.
-    current_noise_nm
-        Standard deviation of each drive's current-loop error, as joint torque of that drive
-        (N·m); the simulated torque is ``V(i_ref + noise) g``.
-    faults
-        Injected faults.
-    friction
-        Friction form of the coupled wrist (``physical`` / ``paper``); ``None``: the robot's.
-    initial_position
-        Joint positions at power-on (rad); ``None``: all zero.
-    max_step_s
-        Largest internal integration step; the step is the period divided by an integer >= 2.
-    bandwidth_hz
-        Velocity-loop bandwidth of the simulated drives.
-    history_s
-        Simulated seconds of truth kept for :meth:`SimulatedCell.joint_torque_history`.
-    """
-
-    clock: str = "lockstep"
-    truth: Path = field(default_factory=_default_truth)
-    payload: Path | None = None
-    seed: int = 0
-    current_noise_nm: float = 0.5
-    faults: tuple[FaultSpec, ...] = ()
-    friction: str | None = None
-    initial_position: tuple[float, ...] | None = None
-    max_step_s: float = 0.0005
-    bandwidth_hz: float = 60.0
-    history_s: float = 120.0
-
-    def __post_init__(self) -> None:
-        if self.clock not in CLOCKS:
-            raise ConfigError(f"simulation clock must be one of {CLOCKS}, got {self.clock!r}")
-        if self.friction is not None and self.friction not in ("physical", "paper"):
-            raise ConfigError(f"friction must be physical or paper, got {self.friction!r}")
-
-
-_SIM_KEYS = {
-    "clock",
-    "truth",
-    "payload",
-    "seed",
-    "current_noise_nm",
-    "friction",
-    "initial_position",
-    "max_step_s",
-    "bandwidth_hz",
-    "history_s",
-    "fault",
-}
-
-
-def _resolve(t: Table, key: str, base_dir: Path) -> Path:
-    name = t.get_str(key)
-    p = Path(name)
-    if not p.is_absolute():
-        p = base_dir / p
-    if p.is_file():
-        return p
-    try:  # a file shipped with drivegain, e.g. "payloads/calibrated-4590g.toml"
-        return resource_path(name)
-    except FileNotFoundError:
-        raise t.error(key, f"file not found: {p}") from None
-
-
-def sim_config_from_table(table: Table, base_dir: Path) -> SimConfig:
-    """Read the ``[simulation]`` table of an acquisition TOML.
-
-    Keys: ``clock`` ("lockstep" | "realtime", default lockstep), ``truth`` (path, default the
-    shipped ``sim/tx40-truth.toml``), ``payload`` (path, optional), ``seed`` (int >= 0, default 0),
-    ``current_noise_nm`` (float >= 0, default 0.5), ``friction`` ("physical" | "paper", optional),
-    ``initial_position`` (floats, rad, optional), ``max_step_s`` (default 0.0005),
-    ``bandwidth_hz`` (default 60), ``history_s`` (default 120), and ``[[simulation.fault]]``
-    tables (see :func:`drivegain.drivers.faults.fault_from_table`). Relative paths are relative
-    to ``base_dir``, then to the files shipped with drivegain.
-
-    Raises
-    ------
-    ConfigError
-        One line naming the file and key at fault.
-    """
-    table.reject_unknown(_SIM_KEYS)
-    noise = table.get_float("current_noise_nm", default=0.5)
-    if noise < 0.0:
-        raise table.error("current_noise_nm", f"must be >= 0, got {noise}")
-    seed = table.get_int("seed", default=0, minimum=0)
-    initial = None
-    if table.has("initial_position"):
-        initial = tuple(float(v) for v in table.get_floats("initial_position"))
-    return SimConfig(
-        clock=table.get_str("clock", default="lockstep", choices=CLOCKS),
-        truth=_resolve(table, "truth", base_dir) if table.has("truth") else _default_truth(),
-        payload=_resolve(table, "payload", base_dir) if table.has("payload") else None,
-        seed=seed,
-        current_noise_nm=noise,
-        faults=tuple(fault_from_table(t) for t in table.tables("fault", required=False)),
-        friction=(
-            table.get_str("friction", choices=("physical", "paper"))
-            if table.has("friction")
-            else None
-        ),
-        initial_position=initial,
-        max_step_s=table.get_float("max_step_s", default=0.0005, positive=True),
-        bandwidth_hz=table.get_float("bandwidth_hz", default=60.0, positive=True),
-        history_s=table.get_float("history_s", default=120.0, positive=True),
-    )
 
 
 @dataclass(frozen=True)
@@ -437,7 +307,7 @@ class SimulatedCell:
         # Physics and drive state: bus callbacks, timer actions and the realtime integrator.
         self._physics_lock = threading.RLock()
         self._integrator: _Integrator | None = None
-        if sim.clock == "realtime":
+        if sim.clock == Clock.REALTIME:
             self.physics.keep_recent_steps()
         self._publish_samples()
 
@@ -454,7 +324,7 @@ class SimulatedCell:
             self._timer = _Timer(self.guard)
             self._timer.start()
             self._t0 = time.monotonic()
-            if self.sim.clock == "realtime":
+            if self.sim.clock == Clock.REALTIME:
                 self._integrator = _Integrator(self)
                 self._integrator.start()
             for drive in self.drives.values():
@@ -576,7 +446,7 @@ class SimulatedCell:
         counter = data[0] if data else 0
         ph = self.physics
         latched: float | None = None  # simulated time of the SYNC instant, s
-        if self.sim.clock == "lockstep":
+        if self.sim.clock == Clock.LOCKSTEP:
             ph.advance(self.substeps)
         elif timestamp is None:
             self.catch_up()

@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 
 from drivegain.config import load_payload, load_robot, load_truth, resource_path
+from drivegain.config.excitation import DEFAULT_HARMONICS
 from drivegain.config.payload import Payload
 from drivegain.config.robot import Robot
 from drivegain.dynamics.params import truth_vector
@@ -107,7 +108,7 @@ def excite(args: argparse.Namespace) -> int:
     payload: Payload | None = None
     if args.payload is not None:
         payload = load_payload(args.payload, robot.n)
-    harmonics = int(_opt(args, "harmonics", 5))
+    harmonics = int(_opt(args, "harmonics", DEFAULT_HARMONICS))
     if harmonics < 1:
         raise ExciteInputError(f"must be >= 1, got {harmonics}", key="--harmonics")
     base_hz = float(_opt(args, "base_frequency", 0.1))

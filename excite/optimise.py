@@ -34,11 +34,12 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.optimize
 
+from drivegain.config.excitation import DEFAULT_HARMONICS
 from drivegain.config.payload import Payload
 from drivegain.config.robot import Robot
 from drivegain.dynamics.model import build_model
 from drivegain.dynamics.regressor import standard_regressor
-from drivegain.errors import TrajectoryError
+from drivegain.errors import InputError, TrajectoryError
 from drivegain.excite.criteria import (
     Criterion,
     DesignModel,
@@ -99,7 +100,7 @@ class ExcitationSettings:
     """
 
     base_frequency_hz: float = 0.1
-    harmonics: int = 5
+    harmonics: int = DEFAULT_HARMONICS
     periods: int = 3
     criterion: Criterion = Criterion.COND
     payload: Payload | None = None
@@ -122,7 +123,7 @@ def plan_budget(budget_s: float) -> tuple[int, int]:
     shorter than one start cuts the iterations instead.
     """
     if not budget_s > 0.0:
-        raise ValueError(f"budget must be > 0 s, got {budget_s}")
+        raise InputError(f"must be > 0 s, got {budget_s}", key="budget")
     if budget_s < NOMINAL_START_S:
         return 1, max(10, int(MAX_ITER * budget_s / NOMINAL_START_S))
     return int(budget_s / NOMINAL_START_S), MAX_ITER

@@ -367,7 +367,14 @@ def _load_and_prepare(
 
 @contextmanager
 def _staging(out: Path) -> Iterator[Path]:
-    """A temporary folder beside ``out``, moved into ``out`` on success, removed on failure."""
+    """A temporary folder beside ``out``, moved into ``out`` on success, removed on failure
+    (SIGTERM included: the command line turns it into an exception).
+
+    Into an existing folder (maybe with the user's own files) our files are moved one by one,
+    each replacement atomic, and the files an earlier identification listed in its report but
+    this one did not write (plots of a form or a run no longer there) are removed, so the
+    folder never mixes two runs' results.
+    """
     parent = out.resolve().parent
     try:
         parent.mkdir(parents=True, exist_ok=True)
@@ -382,11 +389,23 @@ def _staging(out: Path) -> Iterator[Path]:
     if not out.exists():
         os.replace(tmp, out)
         return
-    # An existing folder (maybe with the user's own files): replace our files one by one,
-    # each replacement atomic.
+    stale = set(_listed_files(out / "report.json")) - {p.name for p in tmp.iterdir()}
     for item in sorted(tmp.iterdir()):
         os.replace(item, out / item.name)
+    for name in sorted(stale):
+        (out / name).unlink(missing_ok=True)
     shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _listed_files(report: Path) -> list[str]:
+    """The plain file names an earlier ``report.json`` says its identification wrote."""
+    try:
+        files = json.loads(report.read_text(encoding="utf-8")).get("files", [])
+    except (OSError, ValueError, AttributeError, RecursionError):
+        return []
+    if not isinstance(files, list):
+        return []
+    return [f for f in files if isinstance(f, str) and f == Path(f).name and f]
 
 
 def _reference_section(
@@ -499,8 +518,11 @@ def _run_identify(req: IdentifyRequest) -> IdentifyOutcome:
                 rows, section = _reference_section(req.reference, result, bases)
                 doc["reference"] = {"file": str(req.reference), "parameters": rows}
                 md += section
-            (tmp / "report.json").write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
             (tmp / "report.md").write_text(md, encoding="utf-8")
+            # The files this identification wrote: a re-run into the folder removes what is
+            # no longer produced (contracts §5, an added field).
+            doc["files"] = sorted([*(p.name for p in tmp.iterdir()), "report.json"])
+            (tmp / "report.json").write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
             files = sorted(p.name for p in tmp.iterdir())
         display.progress.remove_task(task)
     return IdentifyOutcome(result=result, report=doc, out=req.out, files=files, robot=robot)

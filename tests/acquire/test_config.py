@@ -6,18 +6,37 @@ from pathlib import Path
 
 import pytest
 
-from drivegain.acquire.config import load_acquisition_config
+from drivegain.acquire.config import (
+    AcquisitionSettings,
+    DaemonSettings,
+    SupervisionSettings,
+    load_acquisition_config,
+)
 from drivegain.config import resource_path
+from drivegain.config.payload import PayloadTable
+from drivegain.config.robot import MDH, Joint, Robot
+from drivegain.config.schema import declared, default_of, describe, keys_of
+from drivegain.config.truth import LinkTruth, Truth
+from drivegain.drivers.bus import (
+    TPDO_TIMEOUT_LOCKSTEP_S,
+    TPDO_TIMEOUT_REALTIME_PERIODS,
+    BusConfig,
+)
+from drivegain.drivers.clock import Clock
+from drivegain.drivers.faults import FaultSpec
+from drivegain.drivers.simconfig import SimConfig
 from drivegain.errors import ConfigError
 
 
 def test_shipped_configs_load() -> None:
     sim = load_acquisition_config(resource_path("acquire-sim.toml"))
-    assert sim.clock == "lockstep" and sim.bus.interface == "virtual"
+    assert sim.clock is Clock.LOCKSTEP and sim.bus.interface == "virtual"
+    assert sim.tpdo_timeout_s == TPDO_TIMEOUT_LOCKSTEP_S
     assert sim.simulation is not None and sim.simulation.current_noise_nm == pytest.approx(0.05)
     assert sim.period_s == pytest.approx(0.004)
     hw = load_acquisition_config(resource_path("acquire-can0.toml"))
-    assert hw.clock == "realtime" and hw.simulation is None
+    assert hw.clock is Clock.REALTIME and hw.simulation is None
+    assert hw.tpdo_timeout_s == pytest.approx(TPDO_TIMEOUT_REALTIME_PERIODS * hw.period_s)
     assert (hw.bus.interface, hw.bus.channel, hw.bus.bitrate) == ("socketcan", "can0", 1_000_000)
     assert hw.daemon is not None and hw.daemon.log_format == "json"
     assert hw.robot.name == sim.robot.name
@@ -72,3 +91,15 @@ def test_missing_robot_file(tmp_path: Path) -> None:
     p.write_text(BASE.format(robot="nope.toml", acq="", extra=""))
     with pytest.raises(ConfigError, match=r"key 'acquisition.robot': file not found"):
         load_acquisition_config(p)
+
+
+def test_every_shipped_table_declares_a_doc_for_each_key() -> None:
+    """Each table is declared once, with a one-line doc per key (for help and docs)."""
+    tables = (AcquisitionSettings, SupervisionSettings, DaemonSettings, BusConfig, SimConfig)
+    tables += (FaultSpec, Robot, Joint, MDH, PayloadTable, Truth, LinkTruth)
+    for cls in tables:
+        assert keys_of(cls), cls
+        assert all(d.spec.doc for d in declared(cls)), cls
+        assert len(describe(cls)) == len(keys_of(cls))
+    assert "period_s (default 0.004, s): SYNC period" in describe(AcquisitionSettings)
+    assert default_of(SimConfig, "clock") is Clock.LOCKSTEP

@@ -6,12 +6,15 @@ import pytest
 
 from drivegain.config._toml import Table
 from drivegain.drivers.bus import (
+    TPDO_TIMEOUT_LOCKSTEP_S,
     BusConfig,
     bus_config_from_table,
     bus_load,
+    default_tpdo_timeout,
     frame_bits,
     open_network,
 )
+from drivegain.drivers.clock import Clock
 from drivegain.drivers.master import Master
 from drivegain.errors import BusError, ConfigError
 
@@ -50,6 +53,12 @@ def test_bad_bus_table_names_the_key(data, key):
         bus_config_from_table(table(data))
     assert err.value.key == key and err.value.file == "acq.toml"
     assert "\n" not in str(err.value)
+
+
+def test_tpdo_timeout_defaults_per_clock():
+    assert default_tpdo_timeout(Clock.LOCKSTEP, 0.004) == TPDO_TIMEOUT_LOCKSTEP_S
+    assert default_tpdo_timeout(Clock.REALTIME, 0.004) == pytest.approx(0.02)
+    assert default_tpdo_timeout(Clock.REALTIME, 0.001) == pytest.approx(0.01)  # floor
 
 
 def test_open_network_on_the_virtual_bus(channel):

@@ -9,9 +9,12 @@ import pytest
 
 from drivegain.config import resource_path
 from drivegain.config._toml import Table
+from drivegain.config.robot import WristFriction
 from drivegain.drivers.bus import BusConfig
+from drivegain.drivers.clock import Clock
 from drivegain.drivers.faults import FaultKind, FaultSpec
-from drivegain.drivers.sim import SimConfig, SimulatedCell, sim_config_from_table
+from drivegain.drivers.sim import SimConfig, SimulatedCell
+from drivegain.drivers.simconfig import sim_config_from_table
 from drivegain.errors import ConfigError
 
 
@@ -25,7 +28,7 @@ def test_defaults(tmp_path):
     cfg = parse("[simulation]\n", tmp_path)
     assert cfg == SimConfig()
     assert cfg.truth == resource_path("sim/tx40-truth.toml")
-    assert (cfg.clock, cfg.payload, cfg.faults, cfg.friction) == ("lockstep", None, (), None)
+    assert (cfg.clock, cfg.payload, cfg.faults, cfg.friction) == (Clock.LOCKSTEP, None, (), None)
 
 
 def test_every_key(tmp_path):
@@ -123,3 +126,16 @@ def test_cell_rejects_an_eds_without_the_drive_objects(tx40, tmp_path):
     with pytest.raises(ConfigError, match="0x6075") as err:
         SimulatedCell(tx40, BusConfig("virtual", "unused"), SimConfig(), 0.004, eds=eds)
     assert err.value.file == str(eds)
+
+
+def test_clock_and_friction_are_enums(tmp_path):
+    cfg = parse('[simulation]\nclock = "realtime"\nfriction = "paper"\n', tmp_path)
+    assert cfg.clock is Clock.REALTIME and cfg.friction is WristFriction.PAPER
+    # programs that build the table themselves may still pass strings
+    assert SimConfig(clock="realtime", friction="physical") == SimConfig(
+        clock=Clock.REALTIME, friction=WristFriction.PHYSICAL
+    )
+    with pytest.raises(ConfigError, match="simulation clock must be one of"):
+        SimConfig(clock="fast")
+    with pytest.raises(ConfigError, match="friction must be physical or paper"):
+        SimConfig(friction="stribeck")

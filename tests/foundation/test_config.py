@@ -3,12 +3,21 @@
 from __future__ import annotations
 
 import re
+from dataclasses import dataclass, field
+from enum import StrEnum
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from drivegain.config import load_payload, load_robot, load_truth, resource_path
+from drivegain.config._toml import Table
+from drivegain.config.schema import (
+    SettingError,
+    derived,
+    load_table,
+    setting,
+)
 from drivegain.errors import ConfigError
 
 TX40 = resource_path("tx40.toml")
@@ -192,3 +201,74 @@ def test_missing_file_is_one_line(tmp_path: Path) -> None:
     with pytest.raises(ConfigError) as info:
         load_robot(tmp_path / "nope.toml")
     assert str(info.value) == f"{tmp_path / 'nope.toml'}: file not found"
+
+
+# --- the declarative table mechanism ------------------------------------------------------------
+
+
+class Mode(StrEnum):
+    FAST = "fast"
+    SLOW = "slow"
+
+
+@dataclass(frozen=True)
+class Inner:
+    gain: float = field(default=1.0, metadata=setting(nonzero=True, doc="a gain"))
+
+
+@dataclass(frozen=True)
+class Example:
+    period_s: float = field(
+        metadata=setting(
+            unit="s", gt=0.0, le=0.1, message="must be at most 0.1 s, got {value}", doc="period"
+        )
+    )
+    count: int = field(default=3, metadata=setting(ge=1, doc="how many"))
+    mode: Mode = field(default=Mode.FAST, metadata=setting(doc="speed"))
+    label: str | None = field(default=None, metadata=setting(key="name", doc="a label"))
+    values: tuple[float, ...] = field(default=(), metadata=setting(unit="rad", doc="values"))
+    inner: tuple[Inner, ...] = field(default=(), metadata=setting(key="item", doc="items"))
+    source: str = field(default="", metadata=derived(doc="given by the caller"))
+
+    def __post_init__(self) -> None:
+        if self.count > 10 and self.mode == Mode.SLOW:
+            raise SettingError("count", "at most 10 when slow")
+
+
+def _load(data: dict, **given) -> Example:
+    return load_table(Example, Table(data, "x.toml", "ex"), **given)
+
+
+def test_load_table_reads_defaults_types_and_derived_fields() -> None:
+    cfg = _load({"period_s": 0.01}, source="here")
+    assert cfg == Example(period_s=0.01, source="here")
+    cfg = _load(
+        {"period_s": 0.1, "count": 4, "mode": "slow", "name": "a", "values": [1, 2.5]},
+    )
+    assert (cfg.count, cfg.mode, cfg.label, cfg.values) == (4, Mode.SLOW, "a", (1.0, 2.5))
+    assert isinstance(cfg.mode, Mode)
+    cfg = _load({"period_s": 0.01, "item": [{"gain": 2.0}, {}]})
+    assert cfg.inner == (Inner(2.0), Inner())
+
+
+@pytest.mark.parametrize(
+    ("data", "message"),
+    [
+        ({}, "key 'ex.period_s': missing"),
+        ({"period_s": "1"}, "key 'ex.period_s': expected a number, got '1'"),
+        ({"period_s": 0}, "key 'ex.period_s': must be > 0, got 0.0"),
+        ({"period_s": 0.5}, "key 'ex.period_s': must be at most 0.1 s, got 0.5"),
+        ({"period_s": 0.01, "count": 0}, "key 'ex.count': must be >= 1, got 0"),
+        ({"period_s": 0.01, "count": True}, "key 'ex.count': expected an integer, got True"),
+        ({"period_s": 0.01, "mode": "x"}, "key 'ex.mode': must be one of fast, slow, got 'x'"),
+        ({"period_s": 0.01, "label": "a"}, "key 'ex.label': unknown key (expected one of count, "),
+        ({"period_s": 0.01, "source": "a"}, "key 'ex.source': unknown key"),
+        ({"period_s": 0.01, "item": [{"gain": 0.0}]}, "key 'ex.item[0].gain': must not be zero"),
+        ({"period_s": 0.01, "count": 11, "mode": "slow"}, "key 'ex.count': at most 10 when slow"),
+    ],
+)
+def test_load_table_errors_are_one_line_naming_file_and_key(data: dict, message: str) -> None:
+    with pytest.raises(ConfigError) as info:
+        _load(data)
+    text = str(info.value)
+    assert text.startswith(f"x.toml: {message}") and "\n" not in text

@@ -271,3 +271,40 @@ def test_failure_midway_leaves_nothing(logs, tmp_path, monkeypatch, capsys) -> N
     assert "disk full" in capsys.readouterr().err
     assert not out.exists()
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".out")]
+
+
+def test_sigterm_midway_leaves_nothing(logs, tmp_path, monkeypatch, capsys) -> None:
+    import os
+    import signal
+    import time
+
+    import drivegain.identify.plots as plots
+
+    def terminated(*_a, **_k):
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(5)  # the handler raises in this thread before the sleep ends
+        raise AssertionError("SIGTERM was not turned into an exception")
+
+    monkeypatch.setattr(plots, "write_plots", terminated)
+    out = tmp_path / "out"
+    code = main(
+        ["identify", "--robot", str(ROBOT), "--unloaded", str(logs["a"]), "--out", str(out)]
+    )
+    assert code == 128 + signal.SIGTERM
+    assert "terminated" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []  # no output folder, no hidden staging folder
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL  # the handler is restored
+
+
+def test_rerun_removes_what_the_earlier_run_wrote_and_this_one_did_not(logs, tmp_path) -> None:
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    (out / "old-plot.png").write_bytes(b"png of an earlier run")
+    (out / "report.json").write_text(json.dumps({"files": ["old-plot.png", "report.json"]}))
+    argv = ["identify", "--robot", str(ROBOT), "--unloaded", str(logs["a"]), "--out", str(out)]
+    assert main(argv) == 0
+    doc = json.loads((out / "report.json").read_text())
+    assert not (out / "old-plot.png").exists()
+    assert (out / "notes.txt").read_text() == "mine"
+    assert sorted(doc["files"]) == sorted(p.name for p in out.iterdir() if p.name != "notes.txt")

@@ -1,0 +1,7 @@
+"""Defaults of the excitation's Fourier series (contracts §6), shared by excite and identify."""
+
+from __future__ import annotations
+
+#: Harmonics per joint of the Fourier series (``drivegain excite --harmonics``): enough to
+#: excite the TX-40's base parameters at a ~0.1 Hz base frequency within its limits.
+DEFAULT_HARMONICS = 5
