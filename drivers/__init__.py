@@ -1,10 +1,18 @@
 """CANopen CiA 402 drives (master side), simulated drives and robot, CAN bus factory.
 
-Modules: :mod:`.bus` (python-can bus from the ``[bus]`` table, bus-load arithmetic),
-:mod:`.cia402` (drive state machine), :mod:`.objects` (object indexes, PDO layouts, error codes),
-:mod:`.master` (the master: boot, enable, cyclic exchange, supervision), :mod:`.sim` (the
-simulated cell: drives + physics on a CAN channel, ``[simulation]`` table), :mod:`.simdrive`
-(one simulated drive), :mod:`.physics` (forward dynamics and drive control loops),
-:mod:`.faults` (injectable faults), :mod:`.gcfreeze` (short garbage-collector pauses while drives
-are supervised). Import the module you need: this package imports nothing.
+Master side: :mod:`.master` (the facade: boot, enable, cyclic exchange, stop, close) over
+:mod:`.link` (time limits, the per-drive record, typed SDO access), :mod:`.configure` (SDO set-up
+and PDO mapping through canopen's PDO API), :mod:`.statewalk` (the CiA 402 walk),
+:mod:`.exchange` (SYNC, RPDO targets, TPDOs tagged by SYNC counter) and :mod:`.supervisor`
+(heartbeats, EMCY, error frames, faults and events); :mod:`.cia402` (drive state machine),
+:mod:`.objects` (object indexes, PDO layouts, error codes), :mod:`.bus` (python-can bus from the
+``[bus]`` table, bus-load arithmetic), :mod:`.clock` (lockstep or realtime).
+
+Simulation: :mod:`.sim` (the simulated cell: drives + physics on a CAN channel), :mod:`.simconfig`
+(its ``[simulation]`` table), :mod:`.simdrive` (one simulated drive), :mod:`.physics` (forward
+dynamics and drive control loops), :mod:`.faults` (injectable faults), :mod:`.simprocess` and
+:mod:`.ipcbus` (the drives in a process of their own).
+
+Process policy: :mod:`.realtime` and :mod:`.gcfreeze` (garbage-collector freeze, SCHED_FIFO).
+Import the module you need: this package imports nothing.
 """

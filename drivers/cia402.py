@@ -7,13 +7,17 @@ figure "state machine") and encodes its statusword.
 
 from __future__ import annotations
 
-from enum import Enum, IntEnum
+from enum import IntEnum, StrEnum
 
 from drivegain.errors import DriveError
 
 
-class State(Enum):
-    """CiA 402 power drive system states."""
+class State(StrEnum):
+    """CiA 402 power drive system states.
+
+    A :class:`~enum.StrEnum` whose values are the names: it is what :class:`DriveError` carries
+    as ``state``, and prints and compares as the plain name (``"FAULT"``).
+    """
 
     NOT_READY_TO_SWITCH_ON = "NOT_READY_TO_SWITCH_ON"
     SWITCH_ON_DISABLED = "SWITCH_ON_DISABLED"
@@ -46,18 +50,19 @@ SW_FOLLOWING = 1 << 12  # CSP: "drive follows the command value"
 SW_FOLLOWING_ERROR = 1 << 13
 
 
-def decode_statusword(sw: int) -> State:
-    """The CiA 402 state shown by a statusword (0x6041).
+def decode_statusword(sw: int, node: int | None = None) -> State:
+    """The CiA 402 state shown by a statusword (0x6041) of node ``node`` (for the error).
 
     Raises
     ------
     DriveError
-        The bits match no state (a corrupt frame or a drive outside the profile).
+        The bits match no state (a corrupt frame or a drive outside the profile); the
+        statusword is the code.
     """
     for mask, value, state in _STATUS_PATTERNS:
         if sw & mask == value:
             return state
-    raise DriveError(f"statusword 0x{sw:04X} shows no CiA 402 state", code=sw)
+    raise DriveError(f"statusword 0x{sw:04X} shows no CiA 402 state", node=node, code=sw)
 
 
 def encode_statusword(state: State, extra: int = 0) -> int:

@@ -15,6 +15,7 @@ from enum import IntEnum
 from pathlib import Path
 
 from drivegain.config import resource_path
+from drivegain.errors import ConfigError
 
 # --- CiA 301 -----------------------------------------------------------------------------------
 DEVICE_TYPE = 0x1000
@@ -193,15 +194,18 @@ def interpolation_period(period_s: float) -> tuple[int, int]:
 
     Raises
     ------
-    ValueError
-        The period is not representable to 1 µs.
+    ConfigError
+        The period (a setting of the acquisition) is not representable to 1 µs.
     """
     # Milliseconds first (what drives display), then finer, then coarser units.
     for exponent in (-3, -4, -5, -6, -2, -1, 0):
         value = period_s / 10.0**exponent
         if abs(value - round(value)) < 1e-6 * max(1.0, value) and 1 <= round(value) <= 255:
             return round(value), exponent
-    raise ValueError(f"a period of {period_s} s cannot be written as 1..255 · 10^-6..0 s")
+    raise ConfigError(
+        f"a SYNC period of {period_s} s cannot be written to the drives as 1..255 · 10^-6..0 s "
+        f"(interpolation period 0x60C2)"
+    )
 
 
 def period_from_interpolation(value: int, index: int) -> float:

@@ -7,17 +7,32 @@ from __future__ import annotations
 import time
 
 import numpy as np
+import pytest
 
 from drivegain.config import load_truth, resource_path
+from drivegain.drivers import gcfreeze
 from drivegain.drivers.master import Timeouts
 from drivegain.drivers.sim import SimConfig
 from drivegain.dynamics.model import build_model
 from drivegain.dynamics.params import truth_vector
 from drivegain.dynamics.regressor import standard_regressor
 from drivegain.dynamics.transmission import joint_torque
+from drivegain.formats.log import EventLevel
 
 PERIOD = 0.004
 NOISE_NM = 0.5
+
+
+@pytest.fixture(autouse=True)
+def _collector_frozen():
+    """The master no longer holds the garbage collector's freeze (the acquisition rig's realtime
+    policy does): these tests drive a master directly with tight time-outs, so they hold it as a
+    rig would, from before boot to after close."""
+    gcfreeze.hold()
+    try:
+        yield
+    finally:
+        gcfreeze.release()
 
 
 def smooth_trajectory(t: np.ndarray, q0: np.ndarray) -> np.ndarray:
@@ -46,7 +61,7 @@ def test_stream_10_s_in_lockstep_tracks_and_reproduces_torques(tx40, channel, ri
         substeps = rig.cell.substeps
         events = rig.master.drain_events()
         assert rig.cell.errors == []
-    assert [e for e in events if e.level == "error"] == []
+    assert [e for e in events if e.level is EventLevel.ERROR] == []
     assert len(samples) == n_cycles == len(history)
     # Samples are tagged by SYNC counter: the drives echoed the counter of their own SYNC.
     echoed = np.array([s.raw["sync_counter"] for s in samples])
@@ -169,3 +184,28 @@ def test_quick_stop_brings_a_moving_robot_to_rest(tx40, channel, rig_factory):
     assert moving > 0.3
     assert all(s is not None and s.name == "SWITCH_ON_DISABLED" for s in states.values())
     assert np.all(qd_after == 0.0)
+
+
+def test_boot_maps_the_pdos_the_drives_then_report(tx40, channel, rig_factory):
+    """The mapping written through canopen's PDO maps reads back on the drives' side, and the
+    master's network keeps no per-PDO canopen callback (its own listener sees every frame)."""
+    with rig_factory(tx40, channel, SimConfig(), PERIOD) as rig:
+        rig.master.boot()
+        layout = rig.master.layout
+        for node_id, drive in rig.cell.drives.items():
+            local = drive.node
+            local.rpdo.read()
+            local.tpdo.read()
+            mapped = [
+                [(v.index, v.subindex, v.length) for v in pdo.map]
+                for pdo in (local.rpdo.map[1], local.tpdo.map[1], local.tpdo.map[2])
+            ]
+            assert mapped == [
+                [(e.index, e.subindex, e.bits) for e in entries]
+                for entries in (layout.rpdo, layout.tpdo1, layout.tpdo2)
+            ]
+            assert [local.tpdo.map[k].trans_type for k in (1, 2)] == [1, 1]
+            assert local.rpdo.map[1].enabled and not local.rpdo.map[2].enabled
+            assert not local.tpdo.map[3].enabled
+            for cob in (0x180 + node_id, 0x280 + node_id, 0x200 + node_id):
+                assert cob not in rig.network.subscribers

@@ -40,8 +40,15 @@ def test_decode_statusword(sw, state):
 
 @pytest.mark.parametrize("sw", [0x0001, 0x0003, 0x0027 & ~0x20 | 0x40, 0x0061])
 def test_invalid_statusword(sw):
-    with pytest.raises(DriveError):
-        decode_statusword(sw)
+    with pytest.raises(DriveError) as err:
+        decode_statusword(sw, node=4)
+    assert (err.value.node, err.value.code) == (4, sw)
+
+
+def test_a_drive_error_carries_the_state_and_prints_its_name():
+    err = DriveError("drive in fault", node=3, state=S.FAULT, code=0x2310)
+    assert err.state is S.FAULT and err.state == "FAULT"
+    assert str(err) == "drive in fault (node 3, state FAULT, code 0x2310)"
 
 
 @pytest.mark.parametrize("state", list(State))

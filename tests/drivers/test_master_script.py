@@ -15,7 +15,8 @@ import pytest
 from drivegain.drivers import objects as ob
 from drivegain.drivers.cia402 import State
 from drivegain.drivers.master import Master, Timeouts
-from drivegain.errors import DriveError
+from drivegain.errors import ConfigError, DriveError
+from drivegain.formats.log import EventLevel
 
 NODE = 1
 PERIOD = 0.004
@@ -111,8 +112,10 @@ def test_boot_sequence_is_byte_exact(one_joint_robot, scripted, frames):
     rig = scripted(boot_script(frames) + close)
     master = Master(one_joint_robot, rig.network, period_s=PERIOD, timeouts=TIMEOUTS)
     master.boot()
-    events = [e.text for e in master.drain_events()]
+    drained = master.drain_events()
+    events = [e.text for e in drained]
     assert "NMT BOOT-UP" in events and "NMT OPERATIONAL" in events
+    assert all(isinstance(e.level, EventLevel) for e in drained)
     master.close()
     assert rig.bus.mismatches == []
     assert rig.bus.remaining() == []
@@ -201,7 +204,8 @@ def test_a_stuck_transition_times_out_with_node_and_state(one_joint_robot, scrip
     with pytest.raises(DriveError) as err:
         master.enable()
     assert err.value.node == NODE
-    assert err.value.state == "SWITCH_ON_DISABLED"
+    assert err.value.state is State.SWITCH_ON_DISABLED
+    assert "state SWITCH_ON_DISABLED" in str(err.value)
     assert err.value.code == 0x5530
     assert "no transition out of SWITCH_ON_DISABLED" in str(err.value)
     master.close()
@@ -264,3 +268,52 @@ def test_drives_without_the_sync_echo_get_a_standard_mapping(
     master.close()
     assert rig.bus.mismatches == []
     assert rig.bus.remaining() == []
+
+
+def _edit_eds(tmp_path, section: str, old: str, new: str):
+    """A copy of the shipped EDS with ``old`` replaced by ``new`` in ``[section]`` only."""
+    text = ob.default_eds().read_text()
+    start = text.index(f"[{section}]")
+    end = text.index("\n[", start + 1)
+    eds = tmp_path / "edited.eds"
+    eds.write_text(text[:start] + text[start:end].replace(old, new) + text[end:])
+    return eds
+
+
+@pytest.mark.parametrize(
+    ("section", "old", "new", "message"),
+    [
+        ("1A01sub2", "AccessType=rw", "AccessType=ro", r"0x1A01:02 is read-only"),
+        ("1600", "ObjectType=0x9", "ObjectType=0x8", r"0x1600 must be a RECORD"),
+    ],
+    ids=["read-only", "array"],
+)
+def test_an_eds_whose_mapping_canopen_cannot_write_is_refused_before_any_frame(
+    one_joint_robot, scripted, tmp_path, section, old, new, message
+):
+    """canopen's PdoMap.save() would skip read-only entries silently, and write no entry of an
+    ARRAY mapping, enabling a mapping the master cannot decode: refuse the EDS, naming it, and
+    leave the network as it was."""
+    eds = _edit_eds(tmp_path, section, old, new)
+    rig = scripted([])
+    with pytest.raises(ConfigError, match=message) as err:
+        Master(one_joint_robot, rig.network, period_s=PERIOD, eds=eds, timeouts=TIMEOUTS)
+    assert err.value.file == str(eds)
+    assert rig.network.nodes == {} and rig.bus.sent == []
+
+
+def test_an_eds_without_an_object_the_master_writes_is_refused(one_joint_robot, scripted, tmp_path):
+    text = ob.default_eds().read_text()
+    start = text.index("[603F]")
+    eds = tmp_path / "no-603f.eds"
+    eds.write_text(text[:start] + text[text.index("\n[", start) + 1 :])
+    rig = scripted([])
+    with pytest.raises(ConfigError, match=r"lacks object\(s\) 0x603F:00"):
+        Master(one_joint_robot, rig.network, period_s=PERIOD, eds=eds, timeouts=TIMEOUTS)
+    assert rig.network.nodes == {}
+
+
+def test_a_period_the_drives_cannot_take_is_a_config_error(one_joint_robot, scripted):
+    rig = scripted([])
+    with pytest.raises(ConfigError, match=r"SYNC period of 0\.0001234567 s"):
+        Master(one_joint_robot, rig.network, period_s=0.0001234567, timeouts=TIMEOUTS)
