@@ -27,6 +27,11 @@ from drivegain.acquire.rig import simulation_for_run
 from drivegain.acquire.session import RunRequest, RunResult, RunState, operator_stop_error
 from drivegain.acquire.stop import StopRequest, stop_on_signals
 from drivegain.config import load_truth, resource_path
+from drivegain.config.excitation import (
+    DEFAULT_BASE_FREQUENCY_HZ,
+    DEFAULT_HARMONICS,
+    DEFAULT_PERIODS,
+)
 from drivegain.errors import ConfigError, IdentificationError
 
 log = logging.getLogger(__name__)
@@ -73,9 +78,9 @@ def demo_trajectory(out: Path, robot_path: Path, console: Console) -> Path:
         payload=resource_path(PAYLOAD),
         seed=0,
         budget=60.0,
-        harmonics=5,
-        base_frequency=0.1,
-        periods=3,
+        harmonics=DEFAULT_HARMONICS,
+        base_frequency=DEFAULT_BASE_FREQUENCY_HZ,
+        periods=DEFAULT_PERIODS,
         criterion="cond",
         plot=None,
         debug=False,

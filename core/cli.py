@@ -24,6 +24,7 @@ from types import FrameType
 from typing import Any, NoReturn
 
 from drivegain import __version__
+from drivegain.config import excitation as ex
 from drivegain.errors import DrivegainError, InputError, OperatorStop
 from drivegain.fileio import check_output
 
@@ -169,9 +170,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--payload", type=Path, help="payload TOML (adds the WTLS criterion)")
     p.add_argument("--seed", type=SEED, default=0, help="random seed (same seed, same file)")
     p.add_argument("--budget", type=BUDGET, default=60.0, help="time budget, s")
-    p.add_argument("--harmonics", type=HARMONICS, default=5, help="harmonics per joint")
-    p.add_argument("--base-frequency", type=BASE_FREQUENCY, default=0.1, help="base frequency, Hz")
-    p.add_argument("--periods", type=PERIODS, default=3, help="periods to run")
+    p.add_argument(
+        "--harmonics", type=HARMONICS, default=ex.DEFAULT_HARMONICS, help="harmonics per joint"
+    )
+    p.add_argument(
+        "--base-frequency",
+        type=BASE_FREQUENCY,
+        default=ex.DEFAULT_BASE_FREQUENCY_HZ,
+        help="base frequency, Hz",
+    )
+    p.add_argument("--periods", type=PERIODS, default=ex.DEFAULT_PERIODS, help="periods to run")
     p.add_argument(
         "--criterion", choices=("cond", "logdet"), default="cond", help="optimality criterion"
     )

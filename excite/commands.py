@@ -11,7 +11,11 @@ from typing import Any
 import numpy as np
 
 from drivegain.config import load_payload, load_robot, load_truth, resource_path
-from drivegain.config.excitation import DEFAULT_HARMONICS
+from drivegain.config.excitation import (
+    DEFAULT_BASE_FREQUENCY_HZ,
+    DEFAULT_HARMONICS,
+    DEFAULT_PERIODS,
+)
 from drivegain.config.payload import Payload
 from drivegain.config.robot import Robot
 from drivegain.dynamics.params import truth_vector
@@ -111,9 +115,9 @@ def excite(args: argparse.Namespace) -> int:
     harmonics = int(_opt(args, "harmonics", DEFAULT_HARMONICS))
     if harmonics < 1:
         raise ExciteInputError(f"must be >= 1, got {harmonics}", key="--harmonics")
-    base_hz = float(_opt(args, "base_frequency", 0.1))
+    base_hz = float(_opt(args, "base_frequency", DEFAULT_BASE_FREQUENCY_HZ))
     _positive(base_hz, "--base-frequency")
-    periods = int(_opt(args, "periods", 3))
+    periods = int(_opt(args, "periods", DEFAULT_PERIODS))
     if periods < 1:
         raise ExciteInputError(f"must be >= 1, got {periods}", key="--periods")
     budget = float(_opt(args, "budget", 60.0))

@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.optimize
 
-from drivegain.config.excitation import DEFAULT_HARMONICS
+from drivegain.config.excitation import DEFAULT_BASE_FREQUENCY_HZ, DEFAULT_HARMONICS
 from drivegain.config.payload import Payload
 from drivegain.config.robot import Robot
 from drivegain.dynamics.model import build_model
@@ -99,7 +99,7 @@ class ExcitationSettings:
         Worker processes.
     """
 
-    base_frequency_hz: float = 0.1
+    base_frequency_hz: float = DEFAULT_BASE_FREQUENCY_HZ
     harmonics: int = DEFAULT_HARMONICS
     periods: int = 3
     criterion: Criterion = Criterion.COND

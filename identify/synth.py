@@ -17,6 +17,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from drivegain.config.excitation import DEFAULT_BASE_FREQUENCY_HZ, DEFAULT_HARMONICS
 from drivegain.config.payload import Payload
 from drivegain.config.robot import Robot, WristFriction
 from drivegain.config.truth import Truth
@@ -193,8 +194,8 @@ def scaled_sum_of_sines(
     robot: Robot,
     rng: np.random.Generator,
     *,
-    base_frequency_hz: float = 0.1,
-    harmonics: int = 5,
+    base_frequency_hz: float = DEFAULT_BASE_FREQUENCY_HZ,
+    harmonics: int = DEFAULT_HARMONICS,
     margin: float = 0.8,
 ) -> FourierTrajectory:
     """A random sum of sines that uses up to ``margin`` of every joint limit.
@@ -237,8 +238,8 @@ def exciting_sum_of_sines(
     model: RobotModel,
     rng: np.random.Generator,
     *,
-    base_frequency_hz: float = 0.1,
-    harmonics: int = 5,
+    base_frequency_hz: float = DEFAULT_BASE_FREQUENCY_HZ,
+    harmonics: int = DEFAULT_HARMONICS,
     candidates: int = 20,
     margin: float = 0.8,
     base: BaseParameters | None = None,

@@ -9,6 +9,7 @@ import pytest
 from drivegain.config import load_robot, resource_path
 from drivegain.dynamics.model import build_model
 from drivegain.dynamics.regressor import stack_joint_major, standard_regressor
+from drivegain.errors import InputError
 from drivegain.excite.criteria import Criterion, design_model
 from drivegain.excite.limits import ExcitationLimits, fourier_usage
 from drivegain.excite.optimise import (
@@ -31,7 +32,7 @@ def test_budget_maps_deterministically() -> None:
     assert plan_budget(NOMINAL_START_S * 10.9) == (10, MAX_ITER)
     starts, iters = plan_budget(NOMINAL_START_S / 3)
     assert starts == 1 and 10 <= iters < MAX_ITER
-    with pytest.raises(ValueError):
+    with pytest.raises(InputError):
         plan_budget(0.0)
 
 

@@ -40,6 +40,10 @@ ALLOWED = {
     "validation": {"core", "config", "dynamics", "formats", "excite", "drivers", "identify"},
 }
 
+#: Single modules allowed more than their folder: the command line declares every option, with
+#: the defaults the config package declares once.
+EXCEPTIONS = {"core/cli.py": {"config"}}
+
 #: A module past this many lines is a sign that it holds two jobs (design.md).
 MAX_LINES = 600
 
@@ -71,9 +75,11 @@ def import_violations(root: Path) -> list[str]:
     bad = []
     for folder, allowed in ALLOWED.items():
         for path in sorted((root / folder).rglob("*.py")):
+            rel = path.relative_to(root).as_posix()
+            extra = EXCEPTIONS.get(rel, set())
             for target in sorted(_imported_folders(path.read_text(encoding="utf-8"))):
-                if target != folder and target not in allowed:
-                    bad.append(f"{path.relative_to(root)}: imports {target}")
+                if target != folder and target not in allowed | extra:
+                    bad.append(f"{rel}: imports {target}")
     return bad
 
 
