@@ -58,13 +58,18 @@ class PayloadTable:
 
     name: str = field(metadata=setting(doc="payload name"))
     link: int = field(metadata=setting(ge=1, doc="link it is fixed to, 1-based"))
-    mass: float | None = field(default=None, metadata=setting(unit="kg", gt=0.0, doc="mass"))
+    mass: float | None = field(
+        default=None, metadata=setting(unit="kg", gt=0.0, magnitude=1e4, doc="mass")
+    )
     first_moment: np.ndarray | None = field(
-        default=None, metadata=setting(unit="kg·m", length=3, doc="MX MY MZ in the link frame")
+        default=None,
+        metadata=setting(unit="kg·m", length=3, magnitude=1e4, doc="MX MY MZ in the link frame"),
     )
     inertia: np.ndarray | None = field(
         default=None,
-        metadata=setting(unit="kg·m²", length=6, doc="XX XY XZ YY YZ ZZ at the frame origin"),
+        metadata=setting(
+            unit="kg·m²", length=6, magnitude=1e5, doc="XX XY XZ YY YZ ZZ at the frame origin"
+        ),
     )
     known: tuple[str, ...] = field(
         default=("mass",), metadata=setting(doc="parameters known to IDIM-WTLS (others identified)")

@@ -55,25 +55,37 @@ class Joint:
     name: str = field(metadata=setting(doc="joint name"))
     mdh: MDH | None = field(metadata=setting(doc="MDH row (required without a URDF)"))
     position_limits: tuple[float, float] = field(
-        metadata=setting(unit="rad", length=2, check=_ordered_limits, doc="[lower, upper]")
+        metadata=setting(
+            unit="rad", length=2, magnitude=1e3, check=_ordered_limits, doc="[lower, upper]"
+        )
     )
-    velocity_limit: float = field(metadata=setting(unit="rad/s", gt=0.0, doc="velocity limit"))
+    velocity_limit: float = field(
+        metadata=setting(unit="rad/s", gt=0.0, magnitude=1e3, doc="velocity limit")
+    )
     acceleration_limit: float = field(
-        metadata=setting(unit="rad/s²", gt=0.0, doc="acceleration limit")
+        metadata=setting(unit="rad/s²", gt=0.0, magnitude=1e5, doc="acceleration limit")
     )
-    jerk_limit: float = field(metadata=setting(unit="rad/s³", gt=0.0, doc="jerk limit"))
+    jerk_limit: float = field(
+        metadata=setting(unit="rad/s³", gt=0.0, magnitude=1e8, doc="jerk limit")
+    )
     gear_ratio: float = field(
-        metadata=setting(nonzero=True, doc="motor angle / joint angle, signed")
+        metadata=setting(nonzero=True, magnitude=1e4, doc="motor angle / joint angle, signed")
     )
-    encoder_counts: int = field(metadata=setting(ge=1, doc="encoder counts per motor turn"))
-    rated_current: float = field(metadata=setting(unit="A", gt=0.0, doc="rated current"))
+    encoder_counts: int = field(
+        metadata=setting(ge=1, le=2**32, doc="encoder counts per motor turn")
+    )
+    rated_current: float = field(
+        metadata=setting(unit="A", gt=0.0, magnitude=1e4, doc="rated current")
+    )
     node_id: int = field(
         metadata=setting(
             ge=1, le=127, message="CANopen node id must be 1..127, got {value}", doc="node id"
         )
     )
     apriori_gain: float = field(
-        metadata=setting(unit="N·m/A", nonzero=True, doc="a priori drive gain, joint side")
+        metadata=setting(
+            unit="N·m/A", nonzero=True, magnitude=1e5, doc="a priori drive gain, joint side"
+        )
     )
 
 
@@ -104,7 +116,7 @@ class Robot:
     couplings: tuple[Coupling, ...] = field(default=(), metadata=derived(doc="[[coupling]]"))
     gravity: np.ndarray = field(
         default_factory=lambda: np.array([0.0, 0.0, -9.81]),
-        metadata=setting(unit="m/s²", length=3, doc="gravity in the base frame"),
+        metadata=setting(unit="m/s²", length=3, magnitude=100.0, doc="gravity in the base frame"),
     )
     wrist_friction: WristFriction = field(
         default=WristFriction.PHYSICAL, metadata=setting(doc="friction form of a coupled motor")

@@ -85,6 +85,7 @@ class Setting:
     gt: float | None = None
     ge: float | None = None
     le: float | None = None
+    magnitude: float | None = None
     nonzero: bool = False
     choices: tuple[Any, ...] = ()
     message: str | None = None
@@ -103,6 +104,7 @@ def setting(
     gt: float | None = None,
     ge: float | None = None,
     le: float | None = None,
+    magnitude: float | None = None,
     nonzero: bool = False,
     choices: Iterable[Any] = (),
     message: str | None = None,
@@ -124,6 +126,10 @@ def setting(
         The TOML key, when it differs from the field name.
     gt, ge, le
         Bounds of a number: ``> gt``, ``>= ge``, ``<= le``.
+    magnitude
+        Physical bound of a number or of every element of an array: finite and
+        ``|value| <= magnitude`` (a typo such as 1e300 is refused at load, not met as an
+        overflow in the physics or the numerics).
     nonzero
         A number that must not be zero.
     choices
@@ -148,6 +154,7 @@ def setting(
         gt=gt,
         ge=ge,
         le=le,
+        magnitude=magnitude,
         nonzero=nonzero,
         choices=tuple(choices),
         message=message,
@@ -370,6 +377,15 @@ def _path(table: Table, key: str, rule: PathRule, base_dir: Path | None) -> Path
 
 def _check_bounds(table: Table, key: str, value: Any, spec: Setting) -> None:
     is_number = isinstance(value, int | float) and not isinstance(value, bool)
+    if spec.magnitude is not None and value is not None:
+        values = np.atleast_1d(np.asarray(value, dtype=float))
+        beyond = ~(np.abs(values) <= spec.magnitude)  # NaN counts as beyond
+        if beyond.any():
+            bad = values[beyond][0]
+            unit = f" {spec.unit}" if spec.unit else ""
+            raise table.error(
+                key, f"must be finite and within ±{spec.magnitude:g}{unit}, got {bad:g}"
+            )
     if is_number:
         if spec.nonzero and value == 0:
             raise table.error(key, "must not be zero")

@@ -22,16 +22,20 @@ class LinkTruth:
         The inertial parameters are not those of a real body (names ``inertia``).
     """
 
-    mass: float = field(metadata=setting(unit="kg", gt=0.0, doc="mass"))
+    mass: float = field(metadata=setting(unit="kg", gt=0.0, magnitude=1e4, doc="mass"))
     first_moment: np.ndarray = field(
-        metadata=setting(unit="kg·m", length=3, doc="MX MY MZ in the link frame")
+        metadata=setting(unit="kg·m", length=3, magnitude=1e4, doc="MX MY MZ in the link frame")
     )
     inertia: np.ndarray = field(
-        metadata=setting(unit="kg·m²", length=6, doc="XX XY XZ YY YZ ZZ at the frame origin")
+        metadata=setting(
+            unit="kg·m²", length=6, magnitude=1e5, doc="XX XY XZ YY YZ ZZ at the frame origin"
+        )
     )
-    Ia: float = field(metadata=setting(unit="kg·m²", doc="rotor inertia, joint side"))
-    Fv: float = field(metadata=setting(unit="N·m·s/rad", doc="viscous friction"))
-    Fc: float = field(metadata=setting(unit="N·m", doc="Coulomb friction"))
+    Ia: float = field(
+        metadata=setting(unit="kg·m²", magnitude=1e5, doc="rotor inertia, joint side")
+    )
+    Fv: float = field(metadata=setting(unit="N·m·s/rad", magnitude=1e5, doc="viscous friction"))
+    Fc: float = field(metadata=setting(unit="N·m", magnitude=1e5, doc="Coulomb friction"))
     offset: float = field(default=0.0, metadata=setting(unit="N·m", doc="torque offset"))
 
     def __post_init__(self) -> None:
@@ -48,7 +52,9 @@ class Truth:
     robot: str = field(metadata=setting(doc="robot name"))
     links: tuple[LinkTruth, ...] = field(metadata=derived(doc="the [[link]] tables"))
     gains: np.ndarray = field(
-        metadata=setting(unit="N·m/A", doc="true drive gains, one per link, non-zero")
+        metadata=setting(
+            unit="N·m/A", magnitude=1e5, doc="true drive gains, one per link, non-zero"
+        )
     )
     fvm: float = field(
         default=0.0, metadata=setting(key="fvm6", unit="N·m·s/rad", doc="coupled motor viscous")

@@ -272,3 +272,28 @@ def test_load_table_errors_are_one_line_naming_file_and_key(data: dict, message:
         _load(data)
     text = str(info.value)
     assert text.startswith(f"x.toml: {message}") and "\n" not in text
+
+
+@pytest.mark.parametrize(
+    ("file", "old", "new", "key"),
+    [
+        ("tx40.toml", "velocity_limit = 5.009094953223726", "velocity_limit = 1e308", "velocity"),
+        ("tx40.toml", "velocity_limit = 5.009094953223726", "velocity_limit = nan", "velocity"),
+        ("payloads/calibrated-4590g.toml", "mass = 4.59", "mass = 1e300", "payload.mass"),
+        ("payloads/calibrated-4590g.toml", "mass = 4.59", "mass = inf", "payload.mass"),
+    ],
+    ids=["velocity-1e308", "velocity-nan", "mass-1e300", "mass-inf"],
+)
+def test_physically_impossible_values_are_refused_at_load(
+    tmp_path: Path, file: str, old: str, new: str, key: str
+) -> None:
+    text = resource_path(file).read_text()
+    assert old in text
+    bad = tmp_path / Path(file).name
+    bad.write_text(text.replace(old, new, 1))
+    loader = load_robot if file == "tx40.toml" else load_payload
+    with pytest.raises(ConfigError) as exc:
+        loader(bad)
+    msg = str(exc.value)
+    assert str(bad) in msg and key in msg and "must be finite" in msg
+    assert "\n" not in msg
