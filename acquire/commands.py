@@ -21,8 +21,10 @@ def acquire(args: argparse.Namespace) -> int:
     from drivegain.acquire.config import load_acquisition_config
     from drivegain.acquire.foreground import run_foreground
     from drivegain.acquire.logs import quiet_libraries
-    from drivegain.acquire.session import RunRequest, RunState, operator_stop_error
+    from drivegain.acquire.request import RunRequest
+    from drivegain.acquire.session import RunState, operator_stop_error
     from drivegain.acquire.stop import StopRequest, stop_on_signals
+    from drivegain.drivers.clock import Clock
 
     quiet_libraries(args.debug)
     cfg = load_acquisition_config(args.config)
@@ -45,7 +47,7 @@ def acquire(args: argparse.Namespace) -> int:
     if result.state is RunState.STOPPED:
         raise operator_stop_error(result)
     stats = result.stats
-    if cfg.clock == "lockstep":
+    if cfg.clock == Clock.LOCKSTEP:
         timing = f"lockstep at {stats.get('speed', '?')} x real time"
     else:
         timing = (

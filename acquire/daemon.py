@@ -32,9 +32,10 @@ from typing import Any, Protocol
 
 from drivegain import __version__
 from drivegain.acquire.config import AcquisitionConfig, DaemonSettings
+from drivegain.acquire.request import RunRequest, prepare_run
+from drivegain.acquire.request import validate_label as _validate_label
 from drivegain.acquire.rig import Rig
-from drivegain.acquire.session import RunRequest, RunResult, RunState, Session, prepare_run
-from drivegain.acquire.session import validate_label as _validate_label
+from drivegain.acquire.session import RunResult, RunState, Session
 from drivegain.acquire.stop import StopRequest
 from drivegain.errors import ConfigError, DrivegainError, InputError
 from drivegain.unixsock import NotASocket, SocketInUse, bind_private
@@ -430,7 +431,12 @@ class Daemon:
         assert self.rig.master is not None
         stop = StopRequest()
         session = Session(
-            self.cfg, self.rig.master, prepared, stop=stop, pre_events=self.rig.boot_events
+            self.cfg,
+            self.rig.master,
+            prepared,
+            stop=stop,
+            pre_events=self.rig.boot_events,
+            policy=self.rig.policy,
         )
         self.rig.boot_events = []
         session.plan()

@@ -16,8 +16,9 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
 from drivegain.acquire.config import AcquisitionConfig
+from drivegain.acquire.request import PreparedRun, RunRequest, prepare_run
 from drivegain.acquire.rig import Rig, simulation_for_run
-from drivegain.acquire.session import PreparedRun, RunRequest, RunResult, Session, prepare_run
+from drivegain.acquire.session import RunResult, Session
 from drivegain.acquire.stop import StopRequest
 from drivegain.drivers.sim import SimConfig
 from drivegain.errors import OperatorStop
@@ -77,7 +78,9 @@ def run_foreground(
     with rig as master:
         if stop.requested:
             raise OperatorStop(f"stopped by {stop.reason} before the drives were enabled")
-        session = Session(cfg, master, prepared, stop=stop, pre_events=rig.boot_events)
+        session = Session(
+            cfg, master, prepared, stop=stop, pre_events=rig.boot_events, policy=rig.policy
+        )
         session.plan()
         if stop.requested:
             raise OperatorStop(f"stopped by {stop.reason} before the drives were enabled")

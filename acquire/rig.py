@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+from contextlib import ExitStack
 from pathlib import Path
 from types import TracebackType
 from typing import Any
@@ -16,8 +17,10 @@ import canopen
 
 from drivegain.acquire.config import AcquisitionConfig
 from drivegain.drivers.bus import open_network
+from drivegain.drivers.clock import Clock
 from drivegain.drivers.ipcbus import INTERFACE as IPC_INTERFACE
 from drivegain.drivers.master import DriveEvent, Master, Timeouts
+from drivegain.drivers.realtime import RealtimePolicy
 from drivegain.drivers.sim import SimConfig, SimulatedCell
 from drivegain.drivers.simprocess import SimulatedCellProcess
 
@@ -39,6 +42,17 @@ def simulation_for_run(sim: SimConfig, payload: Path | None, seed: int | None = 
     return dataclasses.replace(sim, **changes) if changes else sim
 
 
+def realtime_policy(cfg: AcquisitionConfig) -> RealtimePolicy:
+    """The realtime policy of a configuration.
+
+    The garbage-collector freeze always (lockstep time-outs are generous, but a full collection
+    still stalls the bus reader for up to 0.26 s); SCHED_FIFO ``rt_priority`` for the cycle
+    thread in realtime only, as a lockstep cycle has no deadline to keep.
+    """
+    prio = cfg.rt_priority if cfg.clock == Clock.REALTIME else 0
+    return RealtimePolicy(gc_freeze=True, fifo_priority=prio)
+
+
 class Rig:
     """The network, the optional simulated cell and the booted master of a configuration.
 
@@ -51,17 +65,34 @@ class Rig:
         The acquisition configuration.
     simulation
         Overrides ``cfg.simulation`` (e.g. :func:`simulation_for_run`); ignored on hardware.
+    policy
+        The realtime policy (default :func:`realtime_policy` of ``cfg``). The rig enters its
+        process part from :meth:`open` to :meth:`close`, so a daemon that keeps the rig keeps
+        the garbage-collector freeze across its runs; sessions on the rig's master take their
+        cycle thread's scheduling from it (:attr:`policy`), and simulated drives in a child
+        process enter the same policy there.
+    timeouts
+        The master's time limits (default: the library's, with ``cfg.tpdo_timeout_s``).
 
     Use as a context manager, or call :meth:`open` and :meth:`close` (which never raises).
     """
 
-    def __init__(self, cfg: AcquisitionConfig, simulation: SimConfig | None = None):
+    def __init__(
+        self,
+        cfg: AcquisitionConfig,
+        simulation: SimConfig | None = None,
+        policy: RealtimePolicy | None = None,
+        timeouts: Timeouts | None = None,
+    ):
         self.cfg = cfg
         self.simulation = simulation if simulation is not None else cfg.simulation
+        self.policy = policy if policy is not None else realtime_policy(cfg)
+        self.timeouts = timeouts if timeouts is not None else Timeouts(tpdo_s=cfg.tpdo_timeout_s)
         self.cell: SimulatedCell | SimulatedCellProcess | None = None
         self.network: canopen.Network | None = None
         self.master: Master | None = None
         self.boot_events: list[DriveEvent] = []
+        self._realtime: ExitStack | None = None
 
     def open(self) -> Master:
         """Start the simulated drives (if any), connect, boot every drive.
@@ -73,9 +104,18 @@ class Rig:
         """
         cfg = self.cfg
         try:
+            # before any drive thread starts: they inherit its CPU set, and boot's time-outs
+            # are already shorter than a full collection
+            self._realtime = ExitStack()
+            self._realtime.enter_context(self.policy.process())
             if self.simulation is not None:
-                host = SimulatedCellProcess if cfg.bus.interface == IPC_INTERFACE else SimulatedCell
-                self.cell = host(cfg.robot, cfg.bus, self.simulation, cfg.period_s, eds=cfg.eds)
+                sim = self.simulation
+                if cfg.bus.interface == IPC_INTERFACE:
+                    self.cell = SimulatedCellProcess(
+                        cfg.robot, cfg.bus, sim, cfg.period_s, eds=cfg.eds, policy=self.policy
+                    )
+                else:
+                    self.cell = SimulatedCell(cfg.robot, cfg.bus, sim, cfg.period_s, eds=cfg.eds)
                 self.cell.start()
             self.network = open_network(cfg.bus)
             self.master = Master(
@@ -83,10 +123,12 @@ class Rig:
                 self.network,
                 period_s=cfg.period_s,
                 eds=cfg.eds,
-                timeouts=Timeouts(tpdo_s=cfg.tpdo_timeout_s),
+                timeouts=self.timeouts,
             )
             self.master.boot()
             self.boot_events = list(self.master.drain_events())
+            # the booted cell lives as long as the freeze: later collections need not walk it
+            self.policy.refreeze()
         except BaseException:
             self.close()
             raise
@@ -119,6 +161,12 @@ class Rig:
             except Exception as exc:
                 log.error("stopping the simulated drives failed: %s", exc)
             self.cell = None
+        if self._realtime is not None:
+            try:
+                self._realtime.close()
+            except Exception as exc:
+                log.error("leaving the realtime policy failed: %s", exc)
+            self._realtime = None
 
     def __enter__(self) -> Master:
         return self.open()

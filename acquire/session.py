@@ -10,10 +10,8 @@ jerk-limited ruckig profile, disables and finishes the log with the stop recorde
 
 from __future__ import annotations
 
-import gc
 import logging
 import os
-import re
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -24,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from drivegain import __version__
-from drivegain.acquire.checks import check_bus_load, check_excitation, check_motion
+from drivegain.acquire.checks import check_bus_load, check_motion
 from drivegain.acquire.config import AcquisitionConfig
 from drivegain.acquire.pacing import LockstepPacer, Pacer, RealtimePacer
 from drivegain.acquire.recorder import (
@@ -34,24 +32,33 @@ from drivegain.acquire.recorder import (
     RecorderError,
     RecorderOverrun,
 )
+
+# the request and its checks live in .request; importers of the session module still find them
+from drivegain.acquire.request import PreparedRun as PreparedRun
+from drivegain.acquire.request import RunRequest as RunRequest
+from drivegain.acquire.request import prepare_run as prepare_run
+from drivegain.acquire.request import validate_label as validate_label
+from drivegain.acquire.rig import realtime_policy
 from drivegain.acquire.stats import LoopStats
 from drivegain.acquire.stop import StopRequest
 from drivegain.acquire.supervision import Supervisor
-from drivegain.config.payload import Payload, load_payload
-from drivegain.drivers.bus import BusLoad
+from drivegain.drivers.clock import Clock
 from drivegain.drivers.master import DriveEvent, Master
 from drivegain.drivers.objects import EmcyCode
-from drivegain.errors import DriveError, DrivegainError, InputError, OperatorStop
+from drivegain.drivers.realtime import RealtimePolicy
+from drivegain.errors import DriveError, DrivegainError, OperatorStop
 from drivegain.excite.motion import Motion, Phase
 from drivegain.excite.motion import plan_stop as plan_stop_motion
-from drivegain.excite.trajectory import ExcitationFile, load_trajectory, plan_excitation
-from drivegain.formats.log import LogWriter, RunMetadata, utc_now_iso
+from drivegain.excite.trajectory import plan_excitation
+from drivegain.formats.log import EventLevel, RunMetadata, utc_now_iso
+from drivegain.formats.logwriter import LogWriter
 
 log = logging.getLogger(__name__)
 
 #: what the master's event says about a TPDO that arrived after its cycle was over
 _STALE_TPDO = "arrived during SYNC"
-_LABEL = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+#: the levels of drive events; one the log does not know is kept as an error (the safe side)
+_LEVELS = {level.value: level for level in EventLevel}
 
 
 class RunState(StrEnum):
@@ -82,29 +89,6 @@ class AcquisitionFault(DriveError):
     """The cycle loop itself cannot go on (missed deadlines, operator quick stop)."""
 
 
-@dataclass(frozen=True)
-class RunRequest:
-    """What to run: trajectory JSON, log to write (``.mcap``), run label, payload TOML."""
-
-    trajectory: Path
-    out: Path
-    label: str | None = None
-    payload: Path | None = None
-
-
-@dataclass(frozen=True)
-class PreparedRun:
-    """A request whose files were read and checked (nothing written, bus untouched)."""
-
-    request: RunRequest
-    label: str
-    excitation: ExcitationFile
-    payload: Payload | None
-    attachments: tuple[tuple[str, str, bytes], ...]
-    bus_load: BusLoad
-    warnings: tuple[str, ...]
-
-
 @dataclass
 class RunResult:
     """The outcome of a session (also kept on the session when it raised)."""
@@ -116,77 +100,6 @@ class RunResult:
     stop_reason: str | None = None
     fault: str | None = None
     max_following_error: list[float] = field(default_factory=list)
-
-
-def validate_label(label: str) -> str:
-    """A run label usable in a file name.
-
-    Raises
-    ------
-    InputError
-        The label is empty or has characters other than letters, digits, ``_ . -``.
-    """
-    if not _LABEL.match(label):
-        raise InputError(
-            f"run label {label!r} must be 1-64 letters, digits, '_', '.' or '-'", key="label"
-        )
-    return label
-
-
-def prepare_run(cfg: AcquisitionConfig, request: RunRequest) -> PreparedRun:
-    """Read and check everything that does not need the bus; write nothing.
-
-    Raises
-    ------
-    InputError
-        A bad trajectory, payload, output path or label, or a bus that cannot carry the cycle.
-    """
-    out = request.out
-    if out.suffix != ".mcap":
-        raise InputError("the log must be a .mcap file", file=out)
-    for existing in (out, out.with_name(out.name + ".part")):
-        if existing.exists():
-            raise InputError("already exists (a log is never overwritten)", file=existing)
-    if out.parent.exists() and not out.parent.is_dir():
-        raise InputError("is not a directory", file=out.parent)
-    robot = cfg.robot
-    traj_bytes = _read_bytes(request.trajectory)
-    excitation = load_trajectory(request.trajectory)
-    excitation.check_robot(robot)
-    check_excitation(robot, excitation.fourier, cfg.period_s, file=request.trajectory)
-    payload = None
-    attachments: list[tuple[str, str, bytes]] = [
-        (cfg.robot_path.name, "application/toml", _read_bytes(cfg.robot_path))
-    ]
-    if request.payload is not None:
-        payload_bytes = _read_bytes(request.payload)
-        payload = load_payload(request.payload)
-        attachments.append((request.payload.name, "application/toml", payload_bytes))
-    attachments.append((request.trajectory.name, "application/json", traj_bytes))
-    label = validate_label(request.label or ("loaded" if payload is not None else "unloaded"))
-    load, warning = check_bus_load(
-        robot.n, cfg.period_s, cfg.bus.bitrate, warn=cfg.bus_load_warn, config=cfg.source
-    )
-    return PreparedRun(
-        request=request,
-        label=label,
-        excitation=excitation,
-        payload=payload,
-        attachments=tuple(attachments),
-        bus_load=load,
-        warnings=(warning,) if warning else (),
-    )
-
-
-def _read_bytes(path: Path) -> bytes:
-    try:
-        return path.read_bytes()
-    except FileNotFoundError:
-        raise InputError("file not found", file=path) from None
-    except IsADirectoryError:
-        raise InputError("is a directory, expected a file", file=path) from None
-    except OSError as exc:
-        raise InputError(f"cannot read ({exc.strerror})", file=path) from None
 
 
 class _Setpoints:
@@ -236,6 +149,10 @@ class Session:
     on_cycle
         Called on the cycle thread after every cycle with the session (progress displays);
         must be quick.
+    policy
+        The realtime policy of the rig that owns ``master`` (``Rig.policy``; default
+        :func:`~drivegain.acquire.rig.realtime_policy` of ``cfg``). The run enters its cycle
+        thread part (SCHED_FIFO); its process part (garbage-collector freeze) is the rig's.
     """
 
     def __init__(
@@ -247,6 +164,7 @@ class Session:
         stop: StopRequest | None = None,
         pre_events: Sequence[DriveEvent] = (),
         on_cycle: Callable[[Session], None] | None = None,
+        policy: RealtimePolicy | None = None,
     ):
         self.cfg = cfg
         self.robot = cfg.robot
@@ -254,6 +172,7 @@ class Session:
         self.prepared = prepared
         self.stop = stop if stop is not None else StopRequest()
         self.on_cycle = on_cycle
+        self.policy = policy if policy is not None else realtime_policy(cfg)
         self._pre_events = list(pre_events)
         self.state = RunState.PLANNED
         self.cycle = 0
@@ -267,7 +186,6 @@ class Session:
         self._warnings = list(prepared.warnings)
         self._recorder: Recorder | None = None
         self._pacer: Pacer | None = None
-        self._priority_before: tuple[int, os.sched_param] | None = None
 
     # -- planning ------------------------------------------------------------------------------
 
@@ -345,42 +263,43 @@ class Session:
         )
         self._recorder = recorder
         pacer: Pacer
-        if cfg.clock == "lockstep":
+        if cfg.clock == Clock.LOCKSTEP:
             pacer = LockstepPacer(cfg.period_s, self.stats)
         else:
             pacer = RealtimePacer(cfg.period_s, self.stats)
         self._pacer = pacer
         pacer.start()
         recorder.start()
-        gc_was_frozen = False
-        try:
-            self._event("info", f"run '{prep.label}' started", duration_s=f"{self.duration_s:.3f}")
-            for w in self._warnings:
-                log.warning("%s", w)
-                self._event("warning", w)
-            self._drive_events(self._pre_events)
-            self._set_realtime_priority()
-            self.state = RunState.ENABLING
-            self.master.enable()
-            self._drive_events(self.master.drain_events())
-            # a full collection now, then no gen-2 pauses inside the loop
-            gc.collect()
-            gc.freeze()
-            gc_was_frozen = True
-            self._loop(pacer, recorder)
-        except BaseException as exc:
-            self._on_fault(exc, recorder)
-            raise
-        finally:
-            if gc_was_frozen:
-                gc.unfreeze()
-            self._restore_priority()
+        # the quick stop of a fault still runs at the cycle's priority; the disabling of a
+        # normal end at the caller's (nothing is late any more)
+        with self.policy.cycle_thread() as fifo:
+            try:
+                started = f"run '{prep.label}' started"
+                self._event(EventLevel.INFO, started, duration_s=f"{self.duration_s:.3f}")
+                for w in self._warnings:
+                    log.warning("%s", w)
+                    self._event(EventLevel.WARNING, w)
+                self._drive_events(self._pre_events)
+                if fifo.refusal is not None:
+                    text = (
+                        f"cannot use SCHED_FIFO priority {fifo.priority} ({fifo.refusal}): "
+                        "running at normal priority"
+                    )
+                    log.warning("%s", text)
+                    self._event(EventLevel.WARNING, text)
+                self.state = RunState.ENABLING
+                self.master.enable()
+                self._drive_events(self.master.drain_events())
+                self._loop(pacer, recorder)
+            except BaseException as exc:
+                self._on_fault(exc, recorder)
+                raise
         return self._finish_ok(recorder)
 
     def _loop(self, pacer: Pacer, recorder: Recorder) -> None:
         assert self.motion is not None
         cfg = self.cfg
-        lockstep = cfg.clock == "lockstep"
+        lockstep = cfg.clock == Clock.LOCKSTEP
         setpoints = _Setpoints(self.motion, cfg.period_s, 0)
         settle_cycles = round(cfg.settle_s / cfg.period_s)
         period_ns = round(cfg.period_s * 1e9)
@@ -424,7 +343,7 @@ class Session:
                 if ph != phase and ph in _PHASE_STATE:
                     phase = ph
                     self.state = _PHASE_STATE[ph]
-                    self._event("info", f"phase {ph.name.lower()}", phase=ph.name.lower())
+                    self._event(EventLevel.INFO, f"phase {ph.name.lower()}", phase=ph.name.lower())
             q_sp = setpoints.state(k)[0]
             log_ns = pacer.wait(k)
             if isinstance(pacer, RealtimePacer) and (
@@ -478,7 +397,7 @@ class Session:
         stop_motion = plan_stop_motion(self.robot, q, qd, qdd)
         self.state = RunState.STOPPING
         self._event(
-            "warning",
+            EventLevel.WARNING,
             f"operator stop ({self.stop.reason}): decelerating to rest in "
             f"{stop_motion.duration_s:.2f} s",
             reason=self.stop.reason or "",
@@ -486,7 +405,7 @@ class Session:
         )
         log.warning("operator stop (%s): decelerating to rest", self.stop.reason)
         for w in stop_motion.warnings:
-            self._event("warning", w)
+            self._event(EventLevel.WARNING, w)
         # the stop starts from the state of cycle k-1, so its t = 0 is that cycle: cycle k
         # continues one period into it (no repeated setpoint, no velocity jump)
         return _Setpoints(stop_motion, self.cfg.period_s, max(k - 1, 0))
@@ -500,15 +419,15 @@ class Session:
             self.master.disable()
             self._drive_events(self.master.drain_events())
             stats = self.stats.summary()
-            self._event("info", "cycle statistics", **stats)
+            self._event(EventLevel.INFO, "cycle statistics", **stats)
             if stopped:
                 self._event(
-                    "warning",
+                    EventLevel.WARNING,
                     f"operator stop ({self.stop.reason}): robot at rest, drives disabled",
                     reason=self.stop.reason or "",
                 )
             else:
-                self._event("info", f"run finished: {self.cycle} cycles")
+                self._event(EventLevel.INFO, f"run finished: {self.cycle} cycles")
         except BaseException as exc:
             self._on_fault(exc, recorder)
             raise
@@ -549,14 +468,14 @@ class Session:
         if writable:
             try:
                 self._drive_events(pending)
-                self._event("info", "cycle statistics", **self.stats.summary())
+                self._event(EventLevel.INFO, "cycle statistics", **self.stats.summary())
                 fields: dict[str, Any] = {"action": "quick stop", "cycle": self.cycle}
                 if not isinstance(exc, DrivegainError):
                     fields["exception"] = type(exc).__name__
                 drive_state = getattr(exc, "state", None)
                 if drive_state is not None:
                     fields["drive_state"] = drive_state
-                self._event("fault", text, node=node, code=code, **fields)
+                self._event(EventLevel.ERROR, text, node=node, code=code, **fields)
                 path = recorder.finish()
             except Exception as e:
                 log.error("finishing the log after the fault failed: %s", e)
@@ -582,7 +501,7 @@ class Session:
 
     def _event(
         self,
-        level: str,
+        level: EventLevel,
         text: str,
         *,
         node: int | None = None,
@@ -606,38 +525,14 @@ class Session:
             if ev.node is not None and _STALE_TPDO in ev.text:
                 # a TPDO that came after its cycle was over: late on this node
                 self.stats.late_tpdo[ev.node] += 1
+            level = _LEVELS.get(ev.level, EventLevel.ERROR)
             log.log(
-                logging.WARNING if ev.level in ("warning", "error", "fault") else logging.DEBUG,
+                logging.DEBUG if level is EventLevel.INFO else logging.WARNING,
                 "node %s: %s",
                 ev.node,
                 ev.text,
             )
-            self._event(ev.level, ev.text, node=ev.node, code=ev.code, drive_time_ns=ev.time_ns)
-
-    def _set_realtime_priority(self) -> None:
-        """SCHED_FIFO for the cycle thread (the calling thread), if configured and allowed."""
-        prio = self.cfg.rt_priority
-        if prio <= 0 or self.cfg.clock != "realtime":
-            return
-        try:
-            before = (os.sched_getscheduler(0), os.sched_getparam(0))
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(prio))
-        except (PermissionError, OSError) as exc:
-            text = f"cannot use SCHED_FIFO priority {prio} ({exc}): running at normal priority"
-            log.warning("%s", text)
-            self._event("warning", text)
-            return
-        self._priority_before = before
-
-    def _restore_priority(self) -> None:
-        """The thread's scheduling before the run (the caller goes on at normal priority)."""
-        before, self._priority_before = self._priority_before, None
-        if before is None:
-            return
-        try:
-            os.sched_setscheduler(0, before[0], before[1])
-        except OSError as exc:
-            log.warning("cannot restore the scheduling policy after the run: %s", exc)
+            self._event(level, ev.text, node=ev.node, code=ev.code, drive_time_ns=ev.time_ns)
 
 
 def _safe_abandon(recorder: Recorder) -> None:

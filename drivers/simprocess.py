@@ -18,15 +18,16 @@ import socket
 import subprocess
 import sys
 import weakref
+from contextlib import ExitStack
 from multiprocessing.connection import Connection
 from pathlib import Path
 from types import TracebackType
 
 from drivegain import errors as errs
 from drivegain.config.robot import Robot
-from drivegain.drivers import gcfreeze
 from drivegain.drivers.bus import BusConfig
 from drivegain.drivers.ipcbus import INTERFACE
+from drivegain.drivers.realtime import RealtimePolicy
 from drivegain.drivers.sim import FaultRecord, SimConfig, SimulatedCell
 from drivegain.errors import ConfigError, DriveError
 
@@ -45,6 +46,7 @@ def _serve(
     sim: SimConfig,
     period_s: float,
     eds: Path | None,
+    policy: RealtimePolicy,
     conn: Connection,
 ) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -52,12 +54,20 @@ def _serve(
     try:
         cell = SimulatedCell(robot, bus_cfg, sim, period_s, eds=eds)
         cell.start()
-        gcfreeze.hold()  # for the child's life: its drives answer within the master's time-outs
     except errs.DrivegainError as exc:
         conn.send(("error", type(exc).__name__, str(exc)))
         return
     except Exception as exc:
         conn.send(("error", "DriveError", f"the simulated cell failed to start: {exc!r}"))
+        return
+    # for the child's life, after the cell is built (its objects are then frozen too): its
+    # drives must answer within the master's time-outs
+    realtime = ExitStack()
+    try:
+        realtime.enter_context(policy.process())
+    except OSError as exc:  # a CPU set the machine does not have
+        cell.stop()
+        conn.send(("error", "DriveError", f"the simulated drives' realtime policy: {exc}"))
         return
     try:
         conn.send(("ready", None, None))
@@ -69,6 +79,7 @@ def _serve(
         pass
     finally:
         cell.stop()
+        realtime.close()
     try:
         conn.send(("stopped", cell.errors, cell.fault_log()))
     except (OSError, EOFError):
@@ -79,10 +90,10 @@ def main(argv: list[str]) -> int:
     """Child entry point: ``python -m drivegain.drivers.simprocess FD``."""
     conn = Connection(int(argv[1]))
     try:
-        robot, bus_cfg, sim, period_s, eds = conn.recv()
+        robot, bus_cfg, sim, period_s, eds, policy = conn.recv()
     except (EOFError, OSError):
         return 1
-    _serve(robot, bus_cfg, sim, period_s, eds, conn)
+    _serve(robot, bus_cfg, sim, period_s, eds, policy, conn)
     return 0
 
 
@@ -106,6 +117,9 @@ class SimulatedCellProcess:
     bus_cfg
         The master's bus: ``interface = "drivegain-ipc"``, ``channel`` the socket path. The
         child opens it as the server.
+    policy
+        The realtime policy whose process part the child enters for its life (default: the
+        garbage-collector freeze only); its cycle-thread part does not apply (no cycle loop).
 
     Use as a context manager, or :meth:`start` then :meth:`stop` (which never raises).
     ``errors`` and :meth:`fault_log` are filled when the child has stopped.
@@ -119,6 +133,7 @@ class SimulatedCellProcess:
         period_s: float,
         *,
         eds: Path | None = None,
+        policy: RealtimePolicy | None = None,
     ):
         if bus_cfg.interface != INTERFACE:
             raise ConfigError(
@@ -135,6 +150,7 @@ class SimulatedCellProcess:
         self.sim = sim
         self.period_s = period_s
         self.eds = eds
+        self.policy = policy if policy is not None else RealtimePolicy()
         self._conn: Connection | None = None
         self._proc: subprocess.Popen[bytes] | None = None
         self._errors: list[str] = []
@@ -167,7 +183,7 @@ class SimulatedCellProcess:
         self._proc, self._conn = proc, conn
         RUNNING.add(self)
         try:
-            conn.send((self.robot, self.bus_cfg, self.sim, self.period_s, self.eds))
+            conn.send((self.robot, self.bus_cfg, self.sim, self.period_s, self.eds, self.policy))
             if not conn.poll(START_TIMEOUT_S):
                 raise DriveError(
                     f"the simulated cell process did not start within {START_TIMEOUT_S:g} s"

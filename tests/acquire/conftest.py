@@ -19,7 +19,7 @@ import pytest
 from drivegain.config import load_robot, resource_path
 from drivegain.excite.trajectory import save_trajectory, trajectory_document
 from drivegain.formats.fourier import FourierTrajectory
-from drivegain.formats.log import iter_channel
+from drivegain.formats.logreader import iter_channel
 
 _channels = itertools.count()
 
@@ -89,8 +89,14 @@ def short_trajectory(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 @pytest.fixture(scope="session")
 def long_trajectory(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """About 17 s of motion (8 periods at 0.5 Hz), for signals and concurrent requests."""
-    return write_trajectory(tmp_path_factory.mktemp("traj") / "long.json", periods=8)
+    """About 80 s of motion (40 periods at 0.5 Hz, 20 000 cycles at 4 ms), for runs that a test
+    stops (signals, stop requests, concurrent requests).
+
+    The tests stop it within a few hundred cycles; its length only makes sure that no machine,
+    however fast its lockstep or slow its signal delivery, finishes the run before the stop
+    arrives (the stop is what they test).
+    """
+    return write_trajectory(tmp_path_factory.mktemp("traj") / "long.json", periods=40)
 
 
 @pytest.fixture

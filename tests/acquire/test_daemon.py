@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import json
 import os
 import shutil
@@ -21,7 +22,9 @@ import pytest
 
 from drivegain.acquire.config import load_acquisition_config
 from drivegain.acquire.daemon import Daemon, read_reply, request
-from drivegain.formats.log import read_run
+from drivegain.acquire.session import Session
+from drivegain.drivers import gcfreeze
+from drivegain.formats.logreader import read_run
 
 
 class Notes:
@@ -254,3 +257,53 @@ def test_shutdown_during_a_run_brings_it_to_rest_first(
     log = read_run(reply["out"])
     assert not log.truncated
     assert log.events[-1]["text"].startswith("operator stop (SIGTERM): robot at rest")
+
+
+def test_the_freeze_is_held_through_every_run_and_released_when_the_daemon_closes(
+    tmp_path: Path,
+    make_config: Callable[..., Path],
+    short_trajectory: Path,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The rig holds the garbage-collector freeze from boot to close: a run does not end it
+    (a session once unfroze the process after its run while the master believed it held it)."""
+    base = gcfreeze.holders()
+    seen: dict[str, list[tuple[int, int]]] = {"run": [], "idle": []}
+    original = Session._loop
+
+    def observed_loop(self: Session, *args: Any) -> None:
+        # on the cycle thread, at the first cycle and after the last: during the run
+        seen["run"].append((gcfreeze.holders(), gc.get_freeze_count()))
+        original(self, *args)
+        seen["run"].append((gcfreeze.holders(), gc.get_freeze_count()))
+
+    monkeypatch.setattr(Session, "_loop", observed_loop)
+    sock = tmp_path / "ctl.sock"
+    cfg = load_acquisition_config(
+        make_config(daemon=f'socket = "{sock}"\noutput_dir = "{tmp_path / "runs"}"')
+    )
+    d = Daemon(cfg, notifier=Notes())
+    th = threading.Thread(target=d.serve, name="test-daemon")
+    th.start()
+    try:
+        _wait(lambda: d.rig is not None and d.rig.master is not None, what="the boot")
+        _wait(lambda: sock.exists(), what="the socket")
+        for runs in (1, 2):
+            reply = request(sock, {"cmd": "run", "trajectory": str(short_trajectory)})
+            assert reply["ok"], reply
+            status = _wait(
+                lambda n=runs: (s := request(sock, {"cmd": "status"}))["runs"] == n and s,
+                what=f"run {runs}",
+            )
+            assert status["state"] == "idle" and status["last_run"]["state"] == "finished"
+            # between runs the daemon watches the drives: still frozen
+            seen["idle"].append((gcfreeze.holders(), gc.get_freeze_count()))
+    finally:
+        d.shutdown.request("test")
+        th.join(60)
+    assert not th.is_alive()
+    assert len(seen["run"]) == 4 and len(seen["idle"]) == 2, seen
+    assert all(held > base and frozen > 0 for held, frozen in seen["run"] + seen["idle"]), seen
+    assert gcfreeze.holders() == base  # released with the rig
+    if base == 0:
+        assert gc.get_freeze_count() == 0

@@ -19,7 +19,9 @@ from drivegain.acquire.recorder import (
     RecorderError,
     RecorderOverrun,
 )
-from drivegain.formats.log import LogWriter, RunMetadata, read_run
+from drivegain.formats.log import EventLevel, RunMetadata
+from drivegain.formats.logreader import read_run
+from drivegain.formats.logwriter import LogWriter
 
 N = 6
 PERIOD = 0.004
@@ -61,7 +63,7 @@ def test_every_cycle_and_event_reaches_the_file(tmp_path: Path) -> None:
     rec.put_event(
         EventRecord(
             log_time_ns=1_000_000_000 + 3000 * 4_000_000,
-            level="fault",
+            level=EventLevel.ERROR,
             text="boom",
             node=3,
             code=0x8611,

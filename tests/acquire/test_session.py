@@ -26,7 +26,8 @@ from drivegain.config import resource_path
 from drivegain.drivers.cia402 import State
 from drivegain.errors import BusError, ConfigError, DataError, DriveError, InputError
 from drivegain.excite.trajectory import load_trajectory, plan_excitation
-from drivegain.formats.log import read_run
+from drivegain.formats.log import EventLevel
+from drivegain.formats.logreader import read_run
 
 
 def _messages(path: Path) -> dict[str, list[dict]]:
@@ -135,7 +136,7 @@ def test_fault_mid_run_quick_stops_and_ends_the_log(
     t_last = cycles[-1] * cfg.period_s
     assert fired[0].sim_time_s - 2 * cfg.period_s <= t_last < motion_end(session)
     last = msgs["/events"][-1]
-    assert last["level"] == "fault" and last["node"] == node
+    assert last["level"] == EventLevel.ERROR and last["node"] == node
     assert last["action"] == "quick stop"
     if code is not None:
         assert last["code"] == code
@@ -156,7 +157,7 @@ def test_cli_exit_status_of_a_fault(
         ["acquire", "--config", str(cfg), "--trajectory", str(short_trajectory), "--out", str(out)]
     )
     assert status == 1
-    assert read_run(out).events[-1]["level"] == "fault"
+    assert read_run(out).events[-1]["level"] == EventLevel.ERROR
 
 
 def test_a_drive_that_never_boots_writes_nothing(
@@ -196,7 +197,7 @@ def test_following_error_supervision_quick_stops(
     with pytest.raises(SupervisionFault, match="following error") as e:
         run_foreground(cfg, RunRequest(short_trajectory, out), progress=False)
     last = read_run(out).events[-1]
-    assert last["level"] == "fault" and last["node"] == e.value.node
+    assert last["level"] == EventLevel.ERROR and last["node"] == e.value.node
     assert "following error" in last["text"]
 
 

@@ -1,4 +1,10 @@
-"""Simulated drives in a child process on the ``drivegain-ipc`` bus, as realtime runs are timed."""
+"""Simulated drives in a child process on the ``drivegain-ipc`` bus, as realtime runs are timed.
+
+These tests assert behaviour only: a run completes with every cycle in its log, the robot
+follows its setpoints and comes to rest, signals and kills reach the right processes. Timing
+(jitter, latencies, late cycles) is measured by ``benchmarks/bench_acquire.py``, never judged
+here, since the machine that runs the suite is shared.
+"""
 
 from __future__ import annotations
 
@@ -20,14 +26,15 @@ from drivegain.cli import main
 from drivegain.config import resource_path
 from drivegain.drivers.simprocess import SimulatedCellProcess
 from drivegain.errors import BusError, ConfigError
-from drivegain.formats.log import read_run
+from drivegain.formats.logreader import read_run
 
-#: These tests are about processes and signals, not timing: a stalled shared machine must not
-#: turn a late TPDO or a run of late cycles into a fault (at 250 Hz on 2 busy vCPUs, 4 cycles in
-#: a row more than a period late stopped a run at cycle 316 in CI). Overrun supervision itself
-#: is tested on a fake clock (test_timing_and_supervision.py).
-TOLERATED_OVERRUNS = 1_000_000
-RELAXED = f"tpdo_timeout_s = 0.5\nmax_overruns = {TOLERATED_OVERRUNS}"
+#: The realtime runs here check what a realtime run does, not how punctual the machine is: the
+#: timing supervision is switched off (no number of late cycles stops a run, and a TPDO is
+#: missing only when the drives are gone, not late). A stalled shared machine is then slower,
+#: never a failure. The supervision itself is tested on a fake clock
+#: (test_timing_and_supervision.py) and with injected faults in lockstep (test_session.py).
+NO_TIMING_FAULTS = {"tpdo_timeout_s": "5.0", "max_overruns": "1000000"}
+RELAXED = "\n".join(f"{k} = {v}" for k, v in NO_TIMING_FAULTS.items())
 
 
 def _group_alive(pgid: int) -> list[int]:
@@ -46,16 +53,22 @@ def _group_alive(pgid: int) -> list[int]:
 
 
 def _ipc_config(make_config: Callable[..., Path]) -> Path:
-    """Realtime, drives in a child process, flushed often (for runs killed midway)."""
+    """Drives in a child process, flushed often (for runs killed midway).
+
+    Lockstep: the tests that use it are about processes and signals, which behave the same on
+    either clock, and in lockstep every supervision time-out counts simulated time, so a busy
+    machine cannot end the run before the signal does.
+    """
     return make_config(
-        clock="realtime",
-        interface="drivegain-ipc",
-        acquisition=RELAXED + "\nflush_interval_s = 0.2",
+        clock="lockstep", interface="drivegain-ipc", acquisition="flush_interval_s = 0.2"
     )
 
 
 def test_realtime_run_with_the_drives_in_a_child_process(
-    tmp_path: Path, make_config: Callable[..., Path], short_trajectory: Path
+    tmp_path: Path,
+    make_config: Callable[..., Path],
+    short_trajectory: Path,
+    acquire_cli: SimpleNamespace,
 ) -> None:
     path = make_config(clock="realtime", interface="drivegain-ipc", acquisition=RELAXED)
     cfg = load_acquisition_config(path)
@@ -63,17 +76,20 @@ def test_realtime_run_with_the_drives_in_a_child_process(
     res = run_foreground(cfg, RunRequest(short_trajectory, out), progress=False)
     assert res.state is RunState.FINISHED
     log = read_run(out)
+    assert not log.truncated
     np.testing.assert_array_equal(log.cycle, np.arange(res.cycles))
+    assert log.events[-1]["text"] == f"run finished: {res.cycles} cycles"
     # the drives in the other process moved the robot along the setpoints (one period behind
     # in cyclic synchronous position mode, ~1 rad/s: about 0.01 rad)
     assert np.abs(log.position - log.setpoint).max() < 0.03
     assert np.ptp(log.position, axis=0).max() > 0.3
+    acquire_cli.assert_at_rest(log.position, log.sync_period_s)  # and it ends at rest
     assert not Path(cfg.bus.channel).exists()  # the child removed its socket
 
 
-def _relaxed_copy_of_shipped(name: str, dest: Path) -> Path:
-    """The shipped config ``name`` with its relative files made absolute and timing relaxed."""
-    overrides = {"tpdo_timeout_s": "0.5", "max_overruns": str(TOLERATED_OVERRUNS)}
+def _shipped_without_timing_faults(name: str, dest: Path) -> Path:
+    """The shipped config ``name`` with its relative files made absolute and no timing faults."""
+    overrides = NO_TIMING_FAULTS
     lines = resource_path(name).read_text().splitlines()
     assert lines.count("[acquisition]") == 1, f"{name}: expected one [acquisition] table"
     out = []
@@ -91,7 +107,8 @@ def _relaxed_copy_of_shipped(name: str, dest: Path) -> Path:
     cfg = load_acquisition_config(dest)
     shipped = load_acquisition_config(resource_path(name))
     # the copy differs from the shipped config in its timing supervision only
-    assert cfg.supervision.max_overruns == TOLERATED_OVERRUNS and cfg.tpdo_timeout_s == 0.5
+    assert cfg.supervision.max_overruns == int(NO_TIMING_FAULTS["max_overruns"])
+    assert cfg.tpdo_timeout_s == float(NO_TIMING_FAULTS["tpdo_timeout_s"])
     assert (cfg.robot_path, cfg.period_s, cfg.bus, cfg.rt_priority) == (
         shipped.robot_path,
         shipped.period_s,
@@ -103,16 +120,21 @@ def _relaxed_copy_of_shipped(name: str, dest: Path) -> Path:
 
 
 def test_the_shipped_realtime_config_runs(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, short_trajectory: Path
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    short_trajectory: Path,
+    acquire_cli: SimpleNamespace,
 ) -> None:
     monkeypatch.chdir(tmp_path)  # its bus socket is relative to the working directory
-    config = _relaxed_copy_of_shipped("acquire-sim-realtime.toml", tmp_path / "rt.toml")
+    config = _shipped_without_timing_faults("acquire-sim-realtime.toml", tmp_path / "rt.toml")
     args = ["acquire", "--config", str(config), "--trajectory", str(short_trajectory)]
     status = main([*args, "--out", "run.mcap"])
     assert status == 0
     log = read_run(tmp_path / "run.mcap")
+    assert not log.truncated
     np.testing.assert_array_equal(log.cycle, np.arange(log.cycle.size))
     assert log.events[-1]["text"] == f"run finished: {log.cycle.size} cycles"
+    acquire_cli.assert_at_rest(log.position, log.sync_period_s)
     assert not (tmp_path / "drivegain-sim-bus.sock").exists()
     assert os.sched_getscheduler(0) == os.SCHED_OTHER  # the run's SCHED_FIFO is undone
 
