@@ -19,7 +19,7 @@ import canopen
 from drivegain.config._toml import Table
 from drivegain.config.schema import SettingError, load_table, setting
 from drivegain.drivers.clock import Clock
-from drivegain.errors import BusError
+from drivegain.errors import BusError, UsageError
 
 #: Bitrates a CAN 2.0 controller is normally configured for (bit/s).
 STANDARD_BITRATES = (10_000, 20_000, 50_000, 100_000, 125_000, 250_000, 500_000, 800_000, 1_000_000)
@@ -188,7 +188,7 @@ def frame_bits(data_bytes: int, *, extended: bool = False, worst_case: bool = Tr
         Add the worst-case number of stuff bits.
     """
     if not 0 <= data_bytes <= 8:
-        raise ValueError(f"a CAN 2.0 frame carries 0..8 data bytes, got {data_bytes}")
+        raise UsageError(f"a CAN 2.0 frame carries 0..8 data bytes, got {data_bytes}")
     stuffed = (_STUFFED_OVERHEAD_EXT if extended else _STUFFED_OVERHEAD_STD) + 8 * data_bytes
     stuff = (stuffed - 1) // 4 if worst_case else 0
     return stuffed + _FIXED_TAIL + stuff
@@ -244,7 +244,7 @@ def bus_load(
         SYNC data length (1 with a counter, 0 without).
     """
     if n_nodes < 0 or period_s <= 0.0 or bitrate <= 0:
-        raise ValueError("n_nodes >= 0, period_s > 0 and bitrate > 0 are required")
+        raise UsageError("n_nodes >= 0, period_s > 0 and bitrate > 0 are required")
     per_node = sum(frame_bits(b) for b in (*rpdo_bytes, *tpdo_bytes))
     bits = n_nodes * per_node + (frame_bits(sync_bytes) if sync else 0)
     max_rate = bitrate / bits if bits else math.inf

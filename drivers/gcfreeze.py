@@ -27,6 +27,8 @@ from __future__ import annotations
 import gc
 import threading
 
+from drivegain.errors import UsageError
+
 _lock = threading.Lock()
 _holders = 0
 
@@ -78,7 +80,7 @@ def release() -> None:
     global _holders
     with _lock:
         if _holders == 0:
-            raise RuntimeError("gcfreeze.release() without a hold")
+            raise UsageError("gcfreeze.release() without a hold")
         _holders -= 1
         if _holders == 0:
             gc.unfreeze()

@@ -23,6 +23,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 
 from drivegain.drivers import gcfreeze
+from drivegain.errors import ConfigError
 
 log = logging.getLogger(__name__)
 
@@ -80,12 +81,12 @@ class RealtimePolicy:
 
     def __post_init__(self) -> None:
         if not 0 <= self.fifo_priority <= MAX_FIFO_PRIORITY:
-            raise ValueError(
+            raise ConfigError(
                 f"SCHED_FIFO priority must be 0..{MAX_FIFO_PRIORITY}, got {self.fifo_priority}"
             )
         if self.cpus is not None:
             if not self.cpus:
-                raise ValueError("an empty CPU set would leave the process nowhere to run")
+                raise ConfigError("an empty CPU set would leave the process nowhere to run")
             object.__setattr__(self, "cpus", frozenset(self.cpus))
 
     @contextmanager

@@ -28,7 +28,7 @@ import numpy as np
 import scipy.linalg
 
 from drivegain.config.payload import PAYLOAD_PARAMS, Payload
-from drivegain.errors import IdentificationError
+from drivegain.errors import IdentificationError, InputError
 from drivegain.identify.design import Design
 from drivegain.identify.estimate import ls_from_factor, r_factor, tls_from_factor
 from drivegain.identify.gains import identify_gains
@@ -87,7 +87,9 @@ def _known(payload: Payload, names: Sequence[str] | None = None) -> tuple[np.nda
         if bad:
             # A programming error of the caller (a Python argument, not a file or an option),
             # and tests/validation pins ValueError: kept as it is.
-            raise ValueError(f"unknown payload parameters {bad}; expected some of {PAYLOAD_PARAMS}")
+            raise InputError(
+                f"unknown payload parameters {bad}; expected some of {PAYLOAD_PARAMS}", key="known"
+            )
         known = np.array([p in names for p in PAYLOAD_PARAMS])
     if not known.any():
         raise IdentificationError(

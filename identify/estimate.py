@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg
 
-from drivegain.errors import IdentificationError
+from drivegain.errors import IdentificationError, UsageError
 
 #: A column whose distance to the span of the previous ones is below this fraction of its norm
 #: is taken as dependent (cond ~ 1e10 is far beyond anything an identification can use).
@@ -34,7 +34,7 @@ def r_factor(a: np.ndarray) -> np.ndarray:
     a = np.asarray(a, dtype=float)
     if a.ndim != 2:
         # Programming error of the caller, not user data.
-        raise ValueError(f"expected a 2-D matrix, got shape {a.shape}")
+        raise UsageError(f"expected a 2-D matrix, got shape {a.shape}")
     rows, k = a.shape
     if rows == 0:
         return np.zeros((k, k))
@@ -142,7 +142,7 @@ def ols(w: np.ndarray, y: np.ndarray, names: Sequence[str] | None = None) -> LSR
     y = np.asarray(y, dtype=float).reshape(-1, 1)
     if w.shape[0] != y.shape[0]:
         # Programming error of the caller, not user data.
-        raise ValueError(f"W has {w.shape[0]} rows, Y {y.shape[0]}")
+        raise UsageError(f"W has {w.shape[0]} rows, Y {y.shape[0]}")
     return ls_from_factor(r_factor(np.hstack([w, y])), w.shape[0], names)
 
 

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 from scipy import signal as sps
 
-from drivegain.errors import DataError, InputError
+from drivegain.errors import DataError, InputError, UsageError
 
 #: order of the Chebyshev I low-pass :func:`scipy.signal.decimate` applies (its default)
 DECIMATE_IIR_ORDER = 8
@@ -282,7 +282,7 @@ def derivatives(
     x = np.asarray(q, dtype=float)
     if x.ndim not in (1, 2):
         # Programming error of the caller (the log reader always gives (N, n)): not user data.
-        raise ValueError(f"positions must have shape (N,) or (N, n), got {x.shape}")
+        raise UsageError(f"positions must have shape (N,) or (N, n), got {x.shape}")
     sos = np.asarray(sps.butter(settings.order, settings.cutoff_hz, fs=rate_hz, output="sos"))
     padlen = 3 * (2 * len(sos) + 1)  # sosfiltfilt's default padding
     if x.shape[0] <= padlen:
@@ -366,7 +366,7 @@ def parallel_decimate(
     for i, x in enumerate(xs):
         if x.ndim == 0 or x.shape[0] != n_samples:
             # Programming error of the caller (every array comes from the same recording).
-            raise ValueError(f"array {i} has shape {x.shape}, expected {n_samples} samples first")
+            raise UsageError(f"array {i} has shape {x.shape}, expected {n_samples} samples first")
     stages = decimation_stages(int(factor))
     n = n_samples
     padlen = 3 * (2 * (DECIMATE_IIR_ORDER // 2) + 1)  # filtfilt padding of decimate's IIR

@@ -16,7 +16,7 @@ from drivegain.drivers.bus import (
 )
 from drivegain.drivers.clock import Clock
 from drivegain.drivers.master import Master
-from drivegain.errors import BusError, ConfigError
+from drivegain.errors import BusError, ConfigError, UsageError
 
 
 def table(data: dict) -> Table:
@@ -85,7 +85,7 @@ def test_frame_bits_match_the_can_frame_format():
     assert frame_bits(8) == 111 + (34 + 64 - 1) // 4 == 135  # design.md: 111 and 135 bits
     assert frame_bits(0) == 47 + 8
     assert frame_bits(8, extended=True) == 131 + (54 + 64 - 1) // 4
-    with pytest.raises(ValueError):
+    with pytest.raises(UsageError):
         frame_bits(9)
 
 

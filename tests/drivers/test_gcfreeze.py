@@ -17,6 +17,7 @@ import pytest
 
 from drivegain.drivers import gcfreeze
 from drivegain.drivers.realtime import FifoOutcome, RealtimePolicy
+from drivegain.errors import ConfigError, UsageError
 
 
 class _Node:
@@ -55,7 +56,7 @@ def test_a_hold_keeps_existing_objects_out_of_collections_until_the_last_release
 
 
 def test_release_without_hold_is_an_error() -> None:
-    with pytest.raises(RuntimeError, match="without a hold"):
+    with pytest.raises(UsageError, match="without a hold"):
         gcfreeze.release()
 
 
@@ -227,9 +228,9 @@ def test_the_cpu_set_applies_to_every_thread_and_is_restored() -> None:
 
 
 def test_a_policy_is_checked_and_travels_to_a_child_process() -> None:
-    with pytest.raises(ValueError, match=r"0\.\.99"):
+    with pytest.raises(ConfigError, match=r"0\.\.99"):
         RealtimePolicy(fifo_priority=100)
-    with pytest.raises(ValueError, match="empty CPU set"):
+    with pytest.raises(ConfigError, match="empty CPU set"):
         RealtimePolicy(cpus=frozenset())
     policy = RealtimePolicy(fifo_priority=80, cpus=frozenset({0}))
     assert pickle.loads(pickle.dumps(policy)) == policy

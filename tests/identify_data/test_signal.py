@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from drivegain.errors import DataError, InputError
+from drivegain.errors import DataError, InputError, UsageError
 from drivegain.identify.signal import (
     FilterSettings,
     decimated_length,
@@ -194,7 +194,7 @@ def test_bad_data() -> None:
         parallel_decimate([np.zeros((100, 3))], 4, 15)
     with pytest.raises(InputError, match="integer >= 1"):
         parallel_decimate([np.zeros((100, 3))], 0, 1)
-    with pytest.raises(ValueError, match="expected 100 samples"):
+    with pytest.raises(UsageError, match="expected 100 samples"):
         parallel_decimate([np.zeros((100, 3)), np.zeros((99, 3))], 2, 1)
 
 

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from drivegain.config.payload import PAYLOAD_PARAMS
-from drivegain.errors import IdentificationError
+from drivegain.errors import IdentificationError, InputError
 from drivegain.identify.compare import (
     _solve_order,
     coverage,
@@ -92,7 +92,7 @@ def test_per_joint_with_the_mass_only_cannot_scale_the_wrist(world: World, exact
         assert np.abs(b.block(j)[:, mass_col]).max() < 1e-9
     with pytest.raises(IdentificationError, match=r"joint 4: the known payload parameters \(M\)"):
         per_joint_gains(a, b, world.payload)
-    with pytest.raises(ValueError, match="unknown payload parameters"):
+    with pytest.raises(InputError, match="unknown payload parameters"):
         per_joint_gains(a, b, world.payload, known=["mass"])
 
 
