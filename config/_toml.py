@@ -28,6 +28,20 @@ def read_toml(path: str | Path) -> dict[str, Any]:
         raise ConfigError("not a UTF-8 text file", file=p) from None
 
 
+def read_root(path: str | Path, tables: set[str]) -> Table:
+    """The top-level table of a TOML file holding only the ``tables`` named.
+
+    Raises
+    ------
+    ConfigError
+        One line naming the file (unreadable, not TOML) or the unknown key.
+    """
+    p = Path(path)
+    root = Table(read_toml(p), p)
+    root.reject_unknown(tables)
+    return root
+
+
 class Table:
     """A TOML table with its file and dotted key path, for precise error messages."""
 

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drivegain.config._toml import Table, read_toml
+from drivegain.config._toml import read_root
 from drivegain.config.inertia import physical_violation
 from drivegain.config.schema import load_table, setting
 
@@ -92,8 +92,7 @@ def load_payload(path: str | Path, n_links: int | None = None) -> Payload:
         One line naming the file and the key at fault.
     """
     p = Path(path)
-    root = Table(read_toml(p), p)
-    root.reject_unknown({"payload"})
+    root = read_root(p, {"payload"})
     t = root.table("payload")
     table = load_table(PayloadTable, t)
     if n_links is not None and table.link > n_links:

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drivegain.config._toml import Table, read_toml
+from drivegain.config._toml import Table, read_root
 from drivegain.config.schema import derived, load_table, setting
 from drivegain.errors import ConfigError
 
@@ -186,8 +186,7 @@ def load_robot(path: str | Path) -> Robot:
         One line naming the file and the key at fault.
     """
     p = Path(path)
-    root = Table(read_toml(p), p)
-    root.reject_unknown({"robot", "coupling", "joint"})
+    root = read_root(p, {"robot", "coupling", "joint"})
     r = root.table("robot")
     joint_tables = root.tables("joint")
     # "mdh" may be absent: checked below, once [robot] says whether a URDF replaces it

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drivegain.config._toml import Table, read_toml
+from drivegain.config._toml import read_root
 from drivegain.config.inertia import physical_violation
 from drivegain.config.schema import SettingError, derived, load_table, setting
 
@@ -74,8 +74,7 @@ def load_truth(path: str | Path, n_links: int | None = None) -> Truth:
         One line naming the file and the key at fault.
     """
     p = Path(path)
-    root = Table(read_toml(p), p)
-    root.reject_unknown({"truth", "link"})
+    root = read_root(p, {"truth", "link"})
     t = root.table("truth")
     links = tuple(load_table(LinkTruth, lt) for lt in root.tables("link"))
     n = len(links)

@@ -255,11 +255,10 @@ def _complete_chunks_messages(path: Path, cut: int) -> int:
     return (max(ends) - 0) // 4_000_000 + 1  # log time = cycle * 4 ms
 
 
-def test_any_cut_recovers_exactly_the_complete_chunks(tmp_path: Path) -> None:
-    n = 2000
+def _chunked_log(path: Path, n: int, chunk_size: int) -> tuple[Path, dict[str, np.ndarray]]:
+    """A finished log of ``n`` cycles in small chunks (log time = cycle · 4 ms)."""
     s = signals(n)
-    full = tmp_path / "full.mcap"
-    w = LogWriter(full, meta(), chunk_size=16 * 1024)
+    w = LogWriter(path, meta(), chunk_size=chunk_size)
     for i in range(n):
         w.write_joint_state(
             cycle=i,
@@ -270,7 +269,11 @@ def test_any_cut_recovers_exactly_the_complete_chunks(tmp_path: Path) -> None:
             current=s["current"][i],
             setpoint=s["setpoint"][i],
         )
-    w.finish()
+    return w.finish(), s
+
+
+def test_any_cut_recovers_exactly_the_complete_chunks(tmp_path: Path) -> None:
+    full, s = _chunked_log(tmp_path / "full.mcap", 2000, 16 * 1024)
     data = full.read_bytes()
     rng = np.random.default_rng(3)
     cuts = sorted({*rng.integers(8, len(data) - 1, size=40).tolist(), 9, 500, len(data) - 40})
@@ -579,26 +582,10 @@ def test_write_run_helper_with_events_and_gaps(tmp_path: Path) -> None:
 # --- corruption is never read as a shorter file -------------------------------------------
 
 
-def _chunked_log(tmp_path: Path, n: int = 300) -> tuple[Path, dict[str, np.ndarray]]:
-    s = signals(n)
-    w = LogWriter(tmp_path / "base.mcap", meta(), chunk_size=4 * 1024)
-    for i in range(n):
-        w.write_joint_state(
-            cycle=i,
-            t=s["t"][i],
-            log_time_ns=i * 4_000_000,
-            position=s["position"][i],
-            current_reference=s["current_reference"][i],
-            current=s["current"][i],
-            setpoint=s["setpoint"][i],
-        )
-    return w.finish(), s
-
-
 def test_a_corrupt_record_length_is_not_a_cut(tmp_path: Path) -> None:
     """A record length pointing past the end of a finished file sends the reader to the end: it
     used to report a cut file and drop every later cycle."""
-    p, _ = _chunked_log(tmp_path)
+    p, _ = _chunked_log(tmp_path / "base.mcap", 300, 4 * 1024)
     data = p.read_bytes()
     with p.open("rb") as fh:
         summary = make_reader(fh).get_summary()
@@ -616,7 +603,7 @@ def test_mutated_logs_are_read_whole_or_refused(tmp_path: Path) -> None:
     """Seeded fuzzing: a complete-size file with a flipped byte, a zeroed word or a random
     64-bit value is either read in full with the original data or refused with one line naming
     the file; never reported as cut, never shorter, never a crash."""
-    p, s = _chunked_log(tmp_path)
+    p, s = _chunked_log(tmp_path / "base.mcap", 300, 4 * 1024)
     data = p.read_bytes()
     rng = np.random.default_rng(2026)
     outcomes = {"read": 0, "refused": 0}
