@@ -98,7 +98,7 @@ def coverage_text(
     )
     lines.append("")
     lines.append(
-        "For the lead (`identify/procedure.py` is not changed by this study): a correlation "
+        "Not changed by this study (`identify/wtls.py` computes the covariance): a correlation "
         "correction that does not need many blocks would make σ honest, e.g. a Newey-West "
         "(Bartlett-weighted) estimate of the score covariance over a few lags, in place of "
         "the block-1 fallback and its B/(B − p) factor; longer runs (more periods: 38 % of each "

@@ -235,7 +235,7 @@ def _methods_section() -> str:
     add("")
     add(
         "All run on the same prepared data of each seed "
-        "(`drivegain.identify.compare`, `drivegain.identify.procedure`)."
+        "(`drivegain.identify.compare`, `drivegain.identify.procedure` and the modules it calls)."
     )
     add("")
     add(
