@@ -14,6 +14,7 @@ import argparse
 import importlib
 import logging
 import math
+import os
 import signal
 import sys
 import threading
@@ -25,6 +26,7 @@ from typing import Any, NoReturn
 
 from drivegain import __version__
 from drivegain.config import excitation as ex
+from drivegain.config import resource_path
 from drivegain.errors import DrivegainError, InputError, OperatorStop
 from drivegain.fileio import check_output
 
@@ -39,11 +41,27 @@ HANDLERS = {
     "daemon": "drivegain.acquire.commands:daemon",
     "identify": "drivegain.identify.pipeline:identify_command",
     "convert csv": "drivegain.identify.convert:convert_csv_command",
+    "export urdf": "drivegain.identify.export:export_urdf_command",
 }
+
+
+class _Help(argparse.RawDescriptionHelpFormatter):
+    """Descriptions and examples as written; every option with a default says it."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        default = action.default
+        if "%(default)" in text or default is None or default is False or default == "==SUPPRESS==":
+            return text
+        return f"{text} (default: %(default)s)"
 
 
 class _Parser(argparse.ArgumentParser):
     """argparse with the project's error format: one line naming the option, exit status 2."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        kwargs.setdefault("formatter_class", _Help)
+        super().__init__(*args, **kwargs)
 
     def error(self, message: str) -> NoReturn:
         self.exit(2, f"drivegain: error: {message} (see '{self.prog} --help')\n")
@@ -93,6 +111,21 @@ FRACTION = _number(float, 1e-3, 1.0)
 RATE = _number(float, 1.0, 100_000.0, "Hz")
 POSITIVE = _number(float, 1e-9, 1e9)
 DECIMATE = _number(int, 1, 10_000)
+NONNEGATIVE = _number(float, 0.0, 1e9)
+
+
+ROBOT_HELP = "robot TOML, or the name of a shipped robot (tx40)"
+
+
+def robot_file(text: str) -> Path:
+    """``--robot``: a path, or the name of a robot description shipped with drivegain."""
+    path = Path(text)
+    if path.exists() or path.suffix or "/" in text:
+        return path
+    try:
+        return resource_path(f"{text}.toml")
+    except FileNotFoundError:
+        return path  # the loader names the missing file
 
 
 class Terminated(BaseException):
@@ -130,6 +163,10 @@ OUTPUTS: dict[str, list[tuple[str, dict[str, Any]]]] = {
     "excite": [("out", {"overwrite": True}), ("plot", {"overwrite": True, "key": "--plot"})],
     "identify": [("out", {"directory": True})],
     "convert csv": [("out", {"suffix": ".mcap"})],
+    "export urdf": [
+        ("out", {"suffix": ".urdf", "overwrite": True}),
+        ("controller", {"suffix": ".toml", "overwrite": True, "key": "--controller"}),
+    ],
 }
 
 
@@ -165,7 +202,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(handler="demo")
 
     p = sub.add_parser("excite", parents=[common], help="optimise an excitation trajectory")
-    p.add_argument("--robot", type=Path, required=True, help="robot TOML")
+    p.add_argument("--robot", type=robot_file, required=True, help=ROBOT_HELP)
     p.add_argument("--out", type=Path, required=True, help="trajectory JSON to write")
     p.add_argument("--payload", type=Path, help="payload TOML (adds the WTLS criterion)")
     p.add_argument("--seed", type=SEED, default=0, help="random seed (same seed, same file)")
@@ -219,7 +256,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(handler="daemon")
 
     p = sub.add_parser("identify", parents=[common], help="offline identification from logs")
-    p.add_argument("--robot", type=Path, required=True, help="robot TOML")
+    p.add_argument("--robot", type=robot_file, required=True, help=ROBOT_HELP)
     p.add_argument("--unloaded", type=Path, required=True, help="run a (no payload), MCAP")
     p.add_argument("--loaded", type=Path, help="run b (with the payload), MCAP")
     p.add_argument("--payload", type=Path, help="payload TOML of run b")
@@ -240,6 +277,24 @@ def build_parser() -> argparse.ArgumentParser:
         type=Path,
         help="published base parameters to compare with (CSV: expression, value, %%σ, ...)",
     )
+    p.add_argument(
+        "--consistent",
+        action="store_true",
+        help="also fit the base parameters over physically consistent bodies (SDP, docs/model.md)",
+    )
+    p.add_argument(
+        "--prior",
+        type=Path,
+        help="a priori parameters for --consistent (sim-truth TOML; default: shipped model)",
+    )
+    p.add_argument(
+        "--prior-weight", type=NONNEGATIVE, help="weight of the pull towards --prior (1e-6)"
+    )
+    p.add_argument(
+        "--consistent-gains",
+        choices=("fixed", "apriori-sign", "positive"),
+        help="--consistent: keep the gains (default) or solve them with a sign constraint",
+    )
     p.add_argument("--out", type=Path, required=True, help="report folder")
     p.set_defaults(handler="identify")
 
@@ -255,18 +310,29 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="the current file holds motor torques (N·m) rather than current references (A)",
     )
-    c.add_argument("--robot", type=Path, required=True, help="robot TOML")
+    c.add_argument("--robot", type=robot_file, required=True, help=ROBOT_HELP)
     c.add_argument("--run", default="unloaded", help="run label")
     c.add_argument("--payload", type=Path, help="payload TOML fixed to the robot during the run")
     c.add_argument("--out", type=Path, required=True, help="MCAP log to write")
     c.set_defaults(handler="convert csv")
+
+    p = sub.add_parser("export", parents=[common], help="identified parameters to other formats")
+    esub = p.add_subparsers(dest="format", metavar="FORMAT", required=True, parser_class=_Parser)
+    e = esub.add_parser("urdf", parents=[common], help="URDF + controller TOML from a report")
+    e.add_argument(
+        "--report", type=Path, required=True, help="report.json of identify --consistent"
+    )
+    e.add_argument("--robot", type=robot_file, required=True, help=ROBOT_HELP)
+    e.add_argument("--out", type=Path, required=True, help="URDF to write")
+    e.add_argument("--controller", type=Path, help="gains/friction TOML (default: beside --out)")
+    e.set_defaults(handler="export urdf")
 
     p = sub.add_parser("model", parents=[common], help="inspect the robot model")
     msub = p.add_subparsers(
         dest="model_command", metavar="ACTION", required=True, parser_class=_Parser
     )
     m = msub.add_parser("info", parents=[common], help="joints, parameters, base parameters")
-    m.add_argument("--robot", type=Path, required=True, help="robot TOML")
+    m.add_argument("--robot", type=robot_file, required=True, help=ROBOT_HELP)
     m.add_argument("--samples", type=SAMPLES, default=300, help="random states for cond(W)")
     m.add_argument("--seed", type=SEED, default=0, help="seed of the random states")
     m.set_defaults(handler="model info")
@@ -307,6 +373,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except MemoryError:
         print("drivegain: error: out of memory (try a smaller problem)", file=sys.stderr)
         return 1
+    except BrokenPipeError:  # the reader went away (`| head`): nothing more to say
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
     except OSError as exc:  # the file system, not a bug: say which file and why, in one line
         if args.debug:
             traceback.print_exc()

@@ -30,6 +30,7 @@ from drivegain.config.robot import Robot, WristFriction, load_robot
 from drivegain.dynamics.model import RobotModel, build_model
 from drivegain.errors import DataError, InputError
 from drivegain.formats.logreader import RunLog, read_run
+from drivegain.identify import consistent_report as cr
 from drivegain.identify.blas import limited_blas_threads
 from drivegain.identify.prepare import (
     PreparedRun,
@@ -84,6 +85,7 @@ class IdentifyRequest:
     decimate: int | None = None
     reference: Path | None = None
     progress: bool = True
+    consistent: cr.ConsistentRequest | None = None  # identify --consistent
 
 
 def load_gains(spec: str, robot: Robot) -> GivenGains:
@@ -514,6 +516,10 @@ def _run_identify(req: IdentifyRequest) -> IdentifyOutcome:
 
             plots = write_plots(result, robot.joint_names, tmp)
             md = markdown_report(doc, result, robot, infos, plots)
+            if req.consistent is not None:
+                out_c = cr.run_consistent(req.consistent, problem, result)
+                doc["consistent"] = cr.consistent_json(out_c, problem, result)
+                md += cr.consistent_markdown(doc["consistent"], robot)
             if req.reference is not None:
                 rows, section = _reference_section(req.reference, result, bases)
                 doc["reference"] = {"file": str(req.reference), "parameters": rows}
@@ -580,9 +586,12 @@ def identify_command(args: argparse.Namespace) -> int:
         decimate=args.decimate,
         reference=getattr(args, "reference", None),
         progress=True,
+        consistent=cr.request_from_args(args),
     )
     outcome = run_identify(req)
     print(_summary(outcome, outcome.robot.joint_names))
+    if "consistent" in outcome.report:
+        print(cr.summary_line(outcome.report["consistent"]))
     for w in outcome.result.warnings:
         print(f"drivegain: warning: {w}", file=sys.stderr)
     return 0

@@ -50,16 +50,7 @@ def figure_gain_errors(summary: dict[str, Any], joint_names: Sequence[str], path
             if m.key not in stats or stats[m.key]["seeds"] == 0:
                 continue
             x = np.arange(n) + (i - (len(METHODS) - 1) / 2) * width
-            ax.bar(
-                x,
-                stats[m.key]["rmse_pct"],
-                width,
-                color=_color(m),
-                label=m.label,
-                hatch="//" if m.ablation else None,
-                edgecolor="white",
-                linewidth=0.3,
-            )
+            _method_bars(ax, m, x, stats[m.key]["rmse_pct"], width)
         ax.set_yscale("log")
         ax.set_ylabel("RMS error %")
         ax.set_title(f"{sc.label} ({summary[sc.key]['seeds']} seeds)", fontsize=9)
@@ -69,6 +60,20 @@ def figure_gain_errors(summary: dict[str, Any], joint_names: Sequence[str], path
     fig.tight_layout()
     fig.savefig(path, dpi=80)
     plt.close(fig)
+
+
+def _method_bars(ax: Any, m: Method, x: np.ndarray, values: Any, width: float) -> None:
+    """One method's bars, in its colour (ablations hatched), labelled for the legend."""
+    ax.bar(
+        x,
+        values,
+        width,
+        color=_color(m),
+        label=m.label,
+        hatch="//" if m.ablation else None,
+        edgecolor="white",
+        linewidth=0.3,
+    )
 
 
 def figure_coverage(
@@ -95,16 +100,7 @@ def figure_coverage(
         ax.axhline(95.45, color="k", lw=0.6, ls=":")
         for i, m in enumerate(with_std):
             x = np.arange(n) + (i - (len(with_std) - 1) / 2) * width
-            ax.bar(
-                x,
-                100 * np.asarray(stats[m.key]["coverage"]),
-                width,
-                color=_color(m),
-                label=m.label,
-                hatch="//" if m.ablation else None,
-                edgecolor="white",
-                linewidth=0.3,
-            )
+            _method_bars(ax, m, x, 100 * np.asarray(stats[m.key]["coverage"]), width)
         ax.set_ylim(0, 105)
         ax.set_xticks(np.arange(n), world.robot.joint_names)
         ax.set_ylabel("truth in ±2σ %")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import subprocess
 import sys
 from pathlib import Path
@@ -122,3 +123,20 @@ def test_outputs_are_refused_before_any_work(tmp_path: Path) -> None:
         assert fragment in res.stderr and res.stderr.count("\n") == 1, res.stderr
     assert log.read_bytes() == b"a recorded log"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["recorded.mcap", "x.csv"]
+
+
+def test_help_shows_every_default_and_robot_names_work(capsys) -> None:
+    from drivegain.cli import build_parser
+
+    parser = build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    for name, p in sub.choices.items():
+        for action in p._actions:
+            if action.default not in (None, False, argparse.SUPPRESS) and action.help:
+                assert "(default:" in p.format_help(), (name, action.dest)
+                assert f"(default: {action.default})" in " ".join(p.format_help().split()), (
+                    name,
+                    action.dest,
+                )
+    assert main(["model", "info", "--robot", "tx40", "--samples", "20"]) == 0
+    assert "Staubli TX-40" in capsys.readouterr().out
