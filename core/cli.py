@@ -41,7 +41,9 @@ HANDLERS = {
     "daemon": "drivegain.acquire.commands:daemon",
     "identify": "drivegain.identify.pipeline:identify_command",
     "convert csv": "drivegain.identify.convert:convert_csv_command",
+    "convert table": "drivegain.identify.table:convert_table_command",
     "export urdf": "drivegain.identify.export:export_urdf_command",
+    "batch": "drivegain.fleet.commands:batch_command",
 }
 
 
@@ -111,7 +113,10 @@ FRACTION = _number(float, 1e-3, 1.0)
 RATE = _number(float, 1.0, 100_000.0, "Hz")
 POSITIVE = _number(float, 1e-9, 1e9)
 DECIMATE = _number(int, 1, 10_000)
+BITRATE = _number(int, 10_000, 1_000_000, "bit/s")
 NONNEGATIVE = _number(float, 0.0, 1e9)
+SIGMAS = _number(float, 0.1, 1e6, "σ")
+RETRIES = _number(int, 0, 100)
 
 
 ROBOT_HELP = "robot TOML, or the name of a shipped robot (tx40)"
@@ -163,6 +168,7 @@ OUTPUTS: dict[str, list[tuple[str, dict[str, Any]]]] = {
     "excite": [("out", {"overwrite": True}), ("plot", {"overwrite": True, "key": "--plot"})],
     "identify": [("out", {"directory": True})],
     "convert csv": [("out", {"suffix": ".mcap"})],
+    "convert table": [("out", {"suffix": ".mcap"})],
     "export urdf": [
         ("out", {"suffix": ".urdf", "overwrite": True}),
         ("controller", {"suffix": ".toml", "overwrite": True, "key": "--controller"}),
@@ -175,6 +181,20 @@ def _check_outputs(args: argparse.Namespace) -> None:
         value = getattr(args, attr, None)
         if value is not None:
             check_output(value, **kwargs)
+
+
+def _bus_options(p: argparse.ArgumentParser) -> None:
+    """``--interface/--channel/--bitrate`` over the acquisition TOML's bus, as python-can's own
+    tools take them (see :func:`bus_overrides`)."""
+    p.add_argument("--interface", help="python-can interface, over the TOML's [bus]")
+    p.add_argument("--channel", help="CAN channel (can0, vcan0, ...), over the TOML's [bus]")
+    p.add_argument("--bitrate", type=BITRATE, help="bitrate, bit/s, over the TOML's [bus]")
+
+
+def bus_overrides(args: argparse.Namespace) -> dict[str, Any]:
+    """The bus options given on the command line (keyword arguments of
+    :class:`drivegain.drivers.bus.BusOverrides`)."""
+    return {k: getattr(args, k, None) for k in ("interface", "channel", "bitrate")}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -199,6 +219,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--out", type=Path, default=Path("drivegain-demo"), help="output folder")
     p.add_argument("--seed", type=SEED, default=1, help="seed of the simulated noise")
+    p.add_argument(
+        "--robot",
+        choices=("tx40", "ur5"),
+        default="tx40",
+        help="the simulated robot: the Staubli TX-40 (coupled wrist) or a UR5",
+    )
+    _bus_options(p)
     p.set_defaults(handler="demo")
 
     p = sub.add_parser("excite", parents=[common], help="optimise an excitation trajectory")
@@ -249,17 +276,34 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, required=True, help="MCAP log to write")
     p.add_argument("--payload", type=Path, help="payload TOML fixed to the robot for this run")
     p.add_argument("--label", help="run label (default: unloaded/loaded)")
+    p.add_argument(
+        "--can-trace",
+        type=Path,
+        help="also record every CAN frame with python-can (.blf, .asc, .log by suffix)",
+    )
+    _bus_options(p)
     p.set_defaults(handler="acquire")
 
     p = sub.add_parser("daemon", parents=[common], help="the long-running acquisition service")
     p.add_argument("--config", type=Path, required=True, help="acquisition TOML")
+    _bus_options(p)
     p.set_defaults(handler="daemon")
 
     p = sub.add_parser("identify", parents=[common], help="offline identification from logs")
     p.add_argument("--robot", type=robot_file, required=True, help=ROBOT_HELP)
     p.add_argument("--unloaded", type=Path, required=True, help="run a (no payload), MCAP")
     p.add_argument("--loaded", type=Path, help="run b (with the payload), MCAP")
-    p.add_argument("--payload", type=Path, help="payload TOML of run b")
+    p.add_argument(
+        "--payload",
+        type=Path,
+        help="payload TOML of run b (default: the payload TOML attached to the --loaded log)",
+    )
+    p.add_argument(
+        "--current",
+        choices=("reference", "measured"),
+        help="which current of the logs stands for the torque: the drives' current reference "
+        "(default, the paper's v_τ) or the measured current",
+    )
     p.add_argument(
         "--gains",
         help="fix the gains and skip IDIM-WTLS: 'apriori' (the robot file's), 'gear-ratios', a "
@@ -315,6 +359,34 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--payload", type=Path, help="payload TOML fixed to the robot during the run")
     c.add_argument("--out", type=Path, required=True, help="MCAP log to write")
     c.set_defaults(handler="convert csv")
+    c = conv.add_parser(
+        "table",
+        parents=[common],
+        help="one CSV or Parquet table with a time column -> MCAP",
+        description="Expected layout (one row per sample, a header row naming the columns):\n"
+        "\n    time,q1,...,q6,iref1,...,iref6,i1,...,i6\n    0.000,0.10,...\n    0.010,0.11,...\n"
+        "\nexample:\n    drivegain convert table --input run.csv --time time --position 'q{}' "
+        "--current-reference 'iref{}' --current 'i{}' --robot tx40 --run unloaded --out a.mcap\n"
+        "\nColumn lists: comma-separated names or 1-based column numbers, or one name with {} "
+        "for the joint number 1..n. The log keeps the real time stamps.",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    c.add_argument("--input", type=Path, required=True, help="CSV, or Parquet (.parquet)")
+    c.add_argument("--time", required=True, help="time column (name or number)")
+    c.add_argument("--time-unit", default="s", choices=("s", "ms", "us", "ns"), help="default s")
+    c.add_argument("--position", required=True, help="position columns, rad")
+    c.add_argument("--current-reference", required=True, help="current reference columns, A")
+    c.add_argument("--current", help="measured current columns, A")
+    c.add_argument("--setpoint", help="commanded position columns, rad")
+    c.add_argument("--rows", help="FIRST:LAST data rows kept, 1-based (either may be empty)")
+    c.add_argument("--start", type=float, help="keep rows from this time, s after the first row")
+    c.add_argument("--end", type=float, help="keep rows up to this time, s after the first row")
+    c.add_argument("--motor-side", action="store_true", help="positions are motor angles")
+    c.add_argument("--robot", type=robot_file, required=True, help=ROBOT_HELP)
+    c.add_argument("--run", default="unloaded", help="run label (unloaded, loaded, ...)")
+    c.add_argument("--payload", type=Path, help="payload TOML fixed to the robot during the run")
+    c.add_argument("--out", type=Path, required=True, help="MCAP log to write (never replaced)")
+    c.set_defaults(handler="convert table")
 
     p = sub.add_parser("export", parents=[common], help="identified parameters to other formats")
     esub = p.add_subparsers(dest="format", metavar="FORMAT", required=True, parser_class=_Parser)
@@ -326,6 +398,34 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--out", type=Path, required=True, help="URDF to write")
     e.add_argument("--controller", type=Path, help="gains/friction TOML (default: beside --out)")
     e.set_defaults(handler="export urdf")
+
+    p = sub.add_parser(
+        "batch", parents=[common], help="identify a fleet's runs on Dask, fleet table and drift"
+    )
+    p.add_argument(
+        "source",
+        help="campaign TOML, or a folder or glob of logs laid out ROBOT_ID/CAMPAIGN/*.mcap "
+        "(local paths or fsspec URLs)",
+    )
+    p.add_argument(
+        "--out", help="results folder or fsspec URL (default: the campaign's [batch] out)"
+    )
+    p.add_argument(
+        "--scheduler",
+        help="address of a running Dask scheduler, tcp://HOST:PORT (default: a local cluster)",
+    )
+    p.add_argument("--workers", type=JOBS, help="local cluster workers (default: cores)")
+    p.add_argument("--threshold", type=SIGMAS, help="drift flag beyond this many σ (5)")
+    p.add_argument("--baseline", help="baseline campaign (default: each robot's earliest)")
+    p.add_argument("--retries", type=RETRIES, help="retries of a failed task (2)")
+    p.add_argument("--robot", help="logs folder: robot TOML or shipped name, when no robot.toml")
+    p.add_argument("--payload", help="logs folder: payload TOML, when no payload.toml")
+    p.add_argument(
+        "--no-identify-plots",
+        action="store_true",
+        help="skip each identification's PNG plots (most of its time on short runs)",
+    )
+    p.set_defaults(handler="batch")
 
     p = sub.add_parser("model", parents=[common], help="inspect the robot model")
     msub = p.add_subparsers(

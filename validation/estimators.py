@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Sequence
+from concurrent.futures import Executor
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -229,6 +230,7 @@ def monte_carlo(
     deadline: float,
     scenarios: Sequence[Scenario] = SCENARIOS,
     progress: Callable[[str], None] = print,
+    executor: Executor | None = None,
 ) -> dict[str, list[SeedResult]]:
     """Seeds 0.. in every scenario, alternating, until ``seeds`` or the deadline.
 
@@ -244,9 +246,16 @@ def monte_carlo(
         Noise levels, each one of :data:`~drivegain.validation.scenarios.SCENARIOS`.
     progress
         Receives one line of progress now and then.
+    executor
+        Runs the (seed, scenario) pairs, e.g. a Dask client's ``get_executor()`` or a process
+        pool (``world`` is pickled to it); default: one after the other here. Every pair is
+        submitted at once; the results are taken seed by seed, and past the deadline the
+        seeds not yet taken are cancelled.
 
     Scenarios alternate seed by seed, so a budget cut leaves them with equal seed counts.
     """
+    if executor is not None:
+        return _monte_carlo_on(executor, world, seeds, deadline, scenarios, progress)
     results: dict[str, list[SeedResult]] = {sc.key: [] for sc in scenarios}
     t_start = time.perf_counter()
     for s in range(seeds):
@@ -255,6 +264,33 @@ def monte_carlo(
             break
         for sc in scenarios:
             results[sc.key].append(run_seed(world, s, sc))
+        if (s + 1) % 10 == 0 or s == 0:
+            per = (time.perf_counter() - t_start) / (s + 1)
+            progress(f"  seed {s + 1}/{seeds} ({per:.1f} s per seed, all scenarios)")
+    return results
+
+
+def _monte_carlo_on(
+    executor: Executor,
+    world: World,
+    seeds: int,
+    deadline: float,
+    scenarios: Sequence[Scenario],
+    progress: Callable[[str], None],
+) -> dict[str, list[SeedResult]]:
+    """:func:`monte_carlo` with the seeds run by ``executor`` (same results, same order)."""
+    results: dict[str, list[SeedResult]] = {sc.key: [] for sc in scenarios}
+    t_start = time.perf_counter()
+    futures = [[executor.submit(run_seed, world, s, sc) for sc in scenarios] for s in range(seeds)]
+    for s, row in enumerate(futures):
+        if s > 0 and time.perf_counter() > deadline:
+            progress(f"budget spent: stopping after {s} seeds per scenario")
+            for later in futures[s:]:
+                for f in later:
+                    f.cancel()
+            break
+        for sc, f in zip(scenarios, row, strict=True):
+            results[sc.key].append(f.result())
         if (s + 1) % 10 == 0 or s == 0:
             per = (time.perf_counter() - t_start) / (s + 1)
             progress(f"  seed {s + 1}/{seeds} ({per:.1f} s per seed, all scenarios)")

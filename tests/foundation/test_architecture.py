@@ -38,6 +38,7 @@ ALLOWED = {
     "identify": {"core", "config", "dynamics", "formats"},
     "acquire": {"core", "config", "dynamics", "formats", "excite", "drivers", "identify"},
     "validation": {"core", "config", "dynamics", "formats", "excite", "drivers", "identify"},
+    "fleet": {"core", "config", "dynamics", "formats", "identify"},
 }
 
 #: Single modules allowed more than their folder: the command line declares every option, with
