@@ -1,0 +1,127 @@
+"""A lockstep acquisition through the product's own code on the kernel's vcan0.
+
+``drivegain acquire`` in a subprocess, as a user runs it, with ``[bus] interface = "socketcan"``,
+``channel = "vcan0"`` and a ``[simulation]`` table: the simulated TX-40 drives and the master
+each open their own socketcan socket on vcan0. The same run on python-can's ``virtual`` bus must
+give the same cycles and setpoints (timing is not asserted: emulation is slow and noisy).
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from drivegain.config import load_robot, resource_path
+from drivegain.errors import DrivegainError
+from drivegain.formats.fourier import FourierTrajectory
+from drivegain.formats.logreader import RunLog, read_run
+from drivegain.formats.trajectory import save_trajectory, trajectory_document
+
+#: Bound of one acquisition subprocess under emulation, s.
+ACQUIRE_TIMEOUT_S = 900
+
+
+def write_trajectory(path: Path) -> Path:
+    """About 3 s of motion: approach, one 2 s period of a small 0.5 Hz excitation, retreat."""
+    robot = load_robot(resource_path("tx40.toml"))
+    rng = np.random.default_rng(0)
+    a = rng.uniform(-0.3, 0.3, (robot.n, 2))
+    b = rng.uniform(-0.3, 0.3, (robot.n, 2))
+    q0 = np.array([0.1, -0.2, 0.3, 0.0, 0.4, 0.0])
+    f = FourierTrajectory(0.5, q0, a, b, 1)
+    return save_trajectory(path, trajectory_document(f, robot, {"cond": 0.0}))
+
+
+def write_config(path: Path, interface: str, channel: str) -> Path:
+    """The simulated TX-40 in lockstep on the given bus (the layout of acquire-sim.toml)."""
+    path.write_text(
+        "\n".join(
+            [
+                "[acquisition]",
+                f'robot = "{resource_path("tx40.toml")}"',
+                "period_s = 0.004",
+                "[bus]",
+                f'interface = "{interface}"',
+                f'channel = "{channel}"',
+                "bitrate = 1000000",
+                "[simulation]",
+                'clock = "lockstep"',
+                "seed = 3",
+                "current_noise_nm = 0.05",
+                "history_s = 5.0",
+            ]
+        )
+        + "\n"
+    )
+    return path
+
+
+@dataclass
+class Run:
+    status: int
+    output: str
+    seconds: float
+    log: RunLog | None
+
+
+def acquire(folder: Path, interface: str, channel: str, trajectory: Path) -> Run:
+    folder.mkdir()
+    cfg = write_config(folder / "acquire.toml", interface, channel)
+    out = folder / "run.mcap"
+    cmd = [sys.executable, "-m", "drivegain.cli", "acquire", "--config", str(cfg)]
+    cmd += ["--trajectory", str(trajectory), "--out", str(out)]
+    t0 = time.monotonic()
+    proc = subprocess.run(
+        cmd, capture_output=True, text=True, timeout=ACQUIRE_TIMEOUT_S, cwd=folder
+    )
+    seconds = time.monotonic() - t0
+    output = proc.stdout + proc.stderr
+    log = None
+    if out.exists():
+        try:
+            log = read_run(out)
+        except DrivegainError as exc:  # reported by the tests, with the run's output
+            output += f"\n(reading {out.name}: {exc})"
+    return Run(proc.returncode, output, seconds, log)
+
+
+@pytest.fixture(scope="module")
+def trajectory(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return write_trajectory(tmp_path_factory.mktemp("traj") / "short.json")
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory: pytest.TempPathFactory, trajectory: Path) -> dict[str, Run]:
+    base = tmp_path_factory.mktemp("acquire-vcan")
+    got = {"vcan": acquire(base / "vcan", "socketcan", "vcan0", trajectory)}
+    if got["vcan"].status == 0:  # the reference is worth its minutes only then
+        got["virtual"] = acquire(base / "virtual", "virtual", "vcan-test-reference", trajectory)
+    return got
+
+
+def test_lockstep_acquisition_over_vcan0_completes(runs: dict[str, Run]) -> None:
+    run = runs["vcan"]
+    print(f"socketcan/vcan0 run: {run.seconds:.1f} s wall\n{run.output}")
+    assert run.status == 0, run.output
+    assert run.log is not None and not run.log.truncated
+    assert run.log.missing_cycles() == 0
+    assert run.log.cycle.size > 500
+    assert np.all(np.isfinite(run.log.position))
+
+
+def test_vcan0_run_matches_the_virtual_bus_run(runs: dict[str, Run]) -> None:
+    vcan = runs["vcan"]
+    assert vcan.status == 0, "the vcan0 run failed (see the test above)"
+    virtual = runs["virtual"]
+    print(f"virtual run: {virtual.seconds:.1f} s wall")
+    assert virtual.status == 0, virtual.output
+    assert vcan.log is not None and virtual.log is not None
+    assert vcan.log.cycle.size == virtual.log.cycle.size
+    np.testing.assert_array_equal(vcan.log.cycle, virtual.log.cycle)
+    np.testing.assert_array_equal(vcan.log.setpoint, virtual.log.setpoint)
