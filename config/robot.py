@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from enum import StrEnum
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -83,10 +84,43 @@ class Joint:
         )
     )
     apriori_gain: float = field(
+        default=0.0,
         metadata=setting(
-            unit="N·m/A", nonzero=True, magnitude=1e5, doc="a priori drive gain, joint side"
-        )
+            unit="N·m/A",
+            magnitude=1e5,
+            doc="a priori drive gain, joint side (omitted or 0: the gear ratio)",
+        ),
     )
+
+
+#: Joint keys only acquisition needs (the drives' scaling and addresses, the excitation's
+#: limits); identification reads a robot file without them (``load_robot(acquisition=False)``).
+ACQUISITION_KEYS = (
+    "encoder_counts",
+    "rated_current",
+    "node_id",
+    "acceleration_limit",
+    "jerk_limit",
+)
+
+
+def _placeholders(t: Table, index: int) -> dict[str, float | int]:
+    """Stand-in values of the acquisition keys a joint table lacks (identification only).
+
+    Never sent to a drive: acquisition loads the robot file with every key required. The
+    acceleration limit only scales the random states that find the base parameters.
+    """
+    velocity = t.get_float("velocity_limit") if t.has("velocity_limit") else 1.0
+    acceleration = t.get_float("acceleration_limit") if t.has("acceleration_limit") else None
+    acceleration = acceleration if acceleration is not None else 10.0 * abs(velocity)
+    values: dict[str, float | int] = {
+        "encoder_counts": 1,
+        "rated_current": 1.0,
+        "node_id": index + 1,
+        "acceleration_limit": acceleration,
+        "jerk_limit": 10.0 * acceleration,
+    }
+    return {k: v for k, v in values.items() if not t.has(k)}
 
 
 @dataclass(frozen=True)
@@ -125,6 +159,13 @@ class Robot:
         default=None, metadata=setting(parse=_urdf, doc="URDF file instead of the MDH rows")
     )
     source: Path | None = field(default=None, metadata=derived(doc="the robot TOML"))
+    missing: tuple[str, ...] = field(
+        default=(),
+        metadata=derived(doc="acquisition keys absent from the file (identification only)"),
+    )
+    apriori_from_gear_ratio: tuple[str, ...] = field(
+        default=(), metadata=derived(doc="joints whose a priori gain is their gear ratio")
+    )
 
     @property
     def n(self) -> int:
@@ -177,8 +218,20 @@ class Robot:
         return k
 
 
-def load_robot(path: str | Path) -> Robot:
+def load_robot(path: str | Path, *, acquisition: bool = True) -> Robot:
     """Load and validate a robot description.
+
+    Parameters
+    ----------
+    path
+        The robot TOML.
+    acquisition
+        Require the keys only acquisition needs (:data:`ACQUISITION_KEYS`: encoder counts,
+        rated currents, node ids, acceleration and jerk limits). Identification passes False:
+        absent ones get stand-in values never sent to a drive, listed in ``Robot.missing``.
+
+    A joint's a priori gain omitted or 0 is its gear ratio (listed in
+    ``Robot.apriori_from_gear_ratio``).
 
     Raises
     ------
@@ -189,15 +242,25 @@ def load_robot(path: str | Path) -> Robot:
     root = read_root(p, {"robot", "coupling", "joint"})
     r = root.table("robot")
     joint_tables = root.tables("joint")
-    # "mdh" may be absent: checked below, once [robot] says whether a URDF replaces it
+    missing: list[str] = []
+    loaded = []
+    for i, t in enumerate(joint_tables):
+        # "mdh" may be absent: checked below, once [robot] says whether a URDF replaces it
+        given: dict[str, Any] = {} if t.has("mdh") else {"mdh": None}
+        if not acquisition:
+            stand_in = _placeholders(t, i)
+            missing += [f"joint[{i}].{k}" for k in stand_in]
+            given.update(stand_in)
+        loaded.append(load_table(Joint, t, **given))
+    from_ratio = tuple(j.name for j in loaded if j.apriori_gain == 0.0)
     joints = tuple(
-        load_table(Joint, t) if t.has("mdh") else load_table(Joint, t, mdh=None)
-        for t in joint_tables
+        replace(j, apriori_gain=j.gear_ratio) if j.apriori_gain == 0.0 else j for j in loaded
     )
     if not joints:
         raise root.error("joint", "at least one [[joint]] is required")
     _unique(root, "joint", [j.name for j in joints], "name")
-    _unique(root, "joint", [j.node_id for j in joints], "node_id")
+    if acquisition or not any(k.endswith(".node_id") for k in missing):
+        _unique(root, "joint", [j.node_id for j in joints], "node_id")
     couplings = []
     for t in root.tables("coupling", required=False):
         t.reject_unknown({"motor", "joint"})
@@ -210,7 +273,15 @@ def load_robot(path: str | Path) -> Robot:
         couplings.append(Coupling(motor=motor - 1, joint=joint - 1))
     if len({c.motor for c in couplings}) != len(couplings):
         raise root.error("coupling", "at most one coupling per motor")
-    robot = load_table(Robot, r, joints=joints, couplings=tuple(couplings), source=p)
+    robot = load_table(
+        Robot,
+        r,
+        joints=joints,
+        couplings=tuple(couplings),
+        source=p,
+        missing=tuple(missing),
+        apriori_from_gear_ratio=from_ratio,
+    )
     if robot.urdf is None:
         for t, j in zip(joint_tables, joints, strict=True):
             if j.mdh is None:

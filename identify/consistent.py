@@ -277,7 +277,7 @@ def fit_consistent(
         for s, d in enumerate(loaded):
             assert d.run.payload is not None
             for p in np.flatnonzero(d.run.payload.known_mask()):
-                known_cols.append((nb + 10 * s + p, float(d.run.payload.values[p])))
+                known_cols.append((int(nb + 10 * s + p), float(d.run.payload.values[p])))
         if not known_cols:
             raise InputError(
                 "solving the gains needs a loaded run whose payload has known parameters",

@@ -244,6 +244,29 @@ class TLSResult:
 DELTA_TOL = 1e-13
 
 
+class ScaleError(IdentificationError):
+    """The smallest right singular vector has (numerically) no component on the δ column.
+
+    This says only that the TLS solution at this column weighting has no finite scale. It has
+    two causes that the caller tells apart: the known payload columns are not seen by the data
+    (then every weighting fails), or the weighting itself pushes δ below round-off (a V-column
+    weight α so small that g/α dwarfs δ = 1; other α solve).
+
+    Attributes
+    ----------
+    delta
+        |δ| of the unit singular vector.
+    """
+
+    def __init__(self, delta: float):
+        self.delta = delta
+        super().__init__(
+            f"no TLS solution with a finite scale at this column weighting: the smallest "
+            f"singular vector's component on the known-payload column is |δ| = {delta:.2g} "
+            f"(≤ {DELTA_TOL:.0e})"
+        )
+
+
 def tls_from_factor(r: np.ndarray) -> TLSResult:
     """Total least squares from the R factor of A (its last column is the δ column).
 
@@ -257,10 +280,7 @@ def tls_from_factor(r: np.ndarray) -> TLSResult:
     v = vt[-1]
     delta = float(v[-1])
     if not np.isfinite(delta) or abs(delta) <= DELTA_TOL:
-        raise IdentificationError(
-            "IDIM-WTLS has no solution with a finite scale (the known payload parameters are "
-            "not seen by the data): check the loaded run and the payload file"
-        )
+        raise ScaleError(abs(delta) if np.isfinite(delta) else float("nan"))
     gap = float(s[-2] / s[-1]) if k > 1 and s[-1] > 0.0 else np.inf
     return TLSResult(
         x=v / delta,

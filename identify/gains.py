@@ -19,6 +19,7 @@ import numpy as np
 from drivegain.config.payload import PAYLOAD_PARAMS, Payload
 from drivegain.errors import IdentificationError, InputError
 from drivegain.identify.design import Design, ls_transform
+from drivegain.identify.estimate import ScaleError
 from drivegain.identify.weighting import joint_sigma
 from drivegain.identify.wtls import SIGMA_MAX_ITER, WTLSFit, wtls_covariance, wtls_fit
 
@@ -62,6 +63,9 @@ class GainIdentification:
         The payload parameters the WTLS identified along with the gains.
     warnings
         Ill-determination diagnostics.
+    failures
+        (α, message) of every α of the search whose solve failed (reported, not only as gaps
+        in ``alpha_curve``).
     """
 
     gains: np.ndarray
@@ -76,6 +80,19 @@ class GainIdentification:
     payload_unknown: np.ndarray
     payload_std: np.ndarray
     warnings: list[str] = field(default_factory=list)
+    failures: list[tuple[float, str]] = field(default_factory=list)
+
+    @property
+    def alpha_flatness(self) -> float | None:
+        """(max − min)/min of the weighted relative error over the α searched (None if fixed).
+
+        Near round-off (1e-8 and below) the criterion does not choose α at all: every α gives
+        the same fit, and the gains barely move with it.
+        """
+        e = np.array([v for _, v in self.alpha_curve if np.isfinite(v)])
+        if e.size < 2 or e.min() <= 0:
+            return None
+        return float((e.max() - e.min()) / e.min())
 
     @property
     def rel_std_percent(self) -> np.ndarray:
@@ -141,16 +158,19 @@ def identify_gains(
     sigma0 = joint_sigma(designs, factors, ls_t)
     curve: list[tuple[float, float]] = []
     fits: dict[float, WTLSFit | None] = {}
-    failures: list[str] = []
+    failures: list[tuple[float, str]] = []
+    scale_only: set[float] = set()  # α whose failure is δ lost in round-off
 
     def run(al: float) -> WTLSFit | None:
         if al not in fits:
             try:
                 fit = wtls_fit(designs, factors, payload, al, sigma0, np.asarray(apriori))
             except IdentificationError as exc:
-                # At an extreme α the scale may become unobservable; other α may be fine.
+                # At an extreme α the scale may be lost in round-off; other α may be fine.
                 fits[al] = None
-                failures.append(f"α = {al:.3g}: {exc}")
+                failures.append((al, str(exc)))
+                if isinstance(exc, ScaleError):
+                    scale_only.add(al)
                 curve.append((al, float("nan")))
                 return None
             fits[al] = fit
@@ -162,7 +182,7 @@ def identify_gains(
             raise InputError(f"must be a positive number, got {alpha}", key="alpha")
         fixed = run(float(alpha))
         if fixed is None:
-            raise IdentificationError(failures[-1])
+            raise IdentificationError(f"IDIM-WTLS at α = {alpha:.3g}: {failures[-1][1]}")
         best = fixed
         curve.clear()
     else:
@@ -172,14 +192,29 @@ def identify_gains(
             run(al)
         values = [f.relative_error if f is not None else np.inf for f in (fits[g] for g in grid)]
         if not np.isfinite(min(values)):
-            raise IdentificationError(f"IDIM-WTLS failed for every α: {failures[0]}")
+            raise IdentificationError(_all_failed(failures, len(scale_only) == len(failures)))
         best_i = int(np.argmin(values))
         for al in _refine_grid(grid, best_i):
             run(al)
         best = min((f for f in fits.values() if f is not None), key=lambda f: f.relative_error)
         curve.sort()
     step("IDIM-WTLS: covariance")
-    cov, block, n_clusters, warnings = wtls_covariance(designs, payload, best)
+    try:
+        cov, block, n_clusters, warnings = wtls_covariance(designs, payload, best)
+    except IdentificationError as exc:
+        raise IdentificationError(
+            f"IDIM-WTLS at α = {best.alpha:.3g}: {exc}: the runs do not separate the gains "
+            "from the dynamic parameters (are the two runs different, and is the payload's "
+            "effect in the loaded run's currents?)"
+        ) from None
+    if failures:
+        ok = [al for al, f in fits.items() if f is not None]
+        warnings.append(
+            f"IDIM-WTLS failed at {len(failures)} of {len(fits)} α "
+            f"({', '.join(f'{al:.3g}' for al, _ in sorted(failures))}); solved for α in "
+            f"[{min(ok):.3g}, {max(ok):.3g}]: "
+            + _failure_cause(failures, len(scale_only) == len(failures))
+        )
     nb, n = a.nb, a.n
     std_all = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     gains = best.gains
@@ -208,4 +243,30 @@ def identify_gains(
         payload_unknown=best.payload_unknown,
         payload_std=std_all[nb + n :],
         warnings=warnings,
+        failures=sorted(failures),
     )
+
+
+def _failure_cause(failures: Sequence[tuple[float, str]], scale: bool) -> str:
+    """Why some α failed while others solved (the data do see the payload then)."""
+    if scale:
+        return (
+            "there the scale component δ of the singular vector fell below round-off because "
+            "of the column weight, not because the payload is unseen (other α solve)"
+        )
+    return "; ".join(f"α = {al:.3g}: {msg}" for al, msg in sorted(failures)[:2])
+
+
+def _all_failed(failures: Sequence[tuple[float, str]], scale: bool) -> str:
+    """The message when no α of the search gives a solution."""
+    if scale:
+        lo, hi = min(a for a, _ in failures), max(a for a, _ in failures)
+        return (
+            f"IDIM-WTLS has no solution with a finite scale at any α tried ({lo:.3g} to "
+            f"{hi:.3g}): the singular vector's component on the known-payload column is below "
+            "round-off. Either the known payload parameters are not seen by the data (check "
+            "that the loaded run carries the payload, that its currents show it, and the "
+            "payload file) or every α tried is too small (g/α dwarfs the scale)"
+        )
+    al, msg = failures[0]
+    return f"IDIM-WTLS failed for every α tried (first, α = {al:.3g}: {msg})"

@@ -18,20 +18,17 @@ import sys
 import tempfile
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
-from drivegain.config._toml import Table, read_toml
 from drivegain.config.payload import Payload, load_payload
 from drivegain.config.robot import Robot, WristFriction, load_robot
 from drivegain.dynamics.model import RobotModel, build_model
-from drivegain.errors import DataError, InputError
-from drivegain.formats.logreader import RunLog, read_run
+from drivegain.errors import IdentificationError, InputError
 from drivegain.identify import consistent_report as cr
 from drivegain.identify.blas import limited_blas_threads
+from drivegain.identify.diagnose import current_warnings, other_channel_hint
 from drivegain.identify.prepare import (
     PreparedRun,
     bases_for_forms,
@@ -48,15 +45,16 @@ from drivegain.identify.procedure import (
     run_procedure,
 )
 from drivegain.identify.report import FORM_MARGIN, RunInfo, markdown_report, report_json
+from drivegain.identify.runs import (
+    CURRENT_CHANNELS,
+    LoadedRun,
+    attached_payload,
+    check_roles,
+    load_gains,
+    load_run,
+    read_header,
+)
 from drivegain.identify.signal import FilterSettings, default_filter
-
-#: Largest share of missing SYNC cycles that is filled by interpolation (more is an error).
-MAX_MISSING_FRACTION = 0.01
-#: Longest gap of missing cycles that is filled by interpolation.
-MAX_GAP_CYCLES = 10
-
-GAINS_KEYWORDS = ("apriori", "gear-ratios")
-
 
 # --------------------------------------------------------------------------------------------
 # Inputs
@@ -86,134 +84,7 @@ class IdentifyRequest:
     reference: Path | None = None
     progress: bool = True
     consistent: cr.ConsistentRequest | None = None  # identify --consistent
-
-
-def load_gains(spec: str, robot: Robot) -> GivenGains:
-    """Gains given with ``--gains``.
-
-    Raises
-    ------
-    InputError
-        Unknown keyword, unreadable file, wrong count, zero or non-finite values.
-    """
-    if spec == "apriori":
-        return GivenGains(robot.apriori_gains, None, "apriori")
-    if spec == "gear-ratios":
-        return GivenGains(robot.gear_ratios, None, "gear ratios")
-    path = Path(spec)
-    if not path.exists():
-        raise InputError(
-            f"expected {' or '.join(GAINS_KEYWORDS)}, a TOML file or a report.json; "
-            f"no such file {spec!r}",
-            key="--gains",
-        )
-    if path.suffix.lower() == ".json":
-        values, std = _gains_from_report(path, robot.n)
-    else:
-        t = Table(read_toml(path), path)
-        t.reject_unknown({"values", "std"})
-        values = t.get_floats("values", length=robot.n)
-        std = t.get_floats("std", length=robot.n) if t.has("std") else None
-        if np.any(values == 0.0):
-            raise t.error("values", "gains must be non-zero")
-        if std is not None and np.any(std < 0.0):
-            raise t.error("std", "standard deviations must be >= 0")
-    return GivenGains(values, std, str(path))
-
-
-def _gains_from_report(path: Path, n: int) -> tuple[np.ndarray, np.ndarray | None]:
-    try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, ValueError) as exc:
-        raise DataError(f"not a readable JSON report ({exc})", file=path) from None
-    gains = doc.get("gains") if isinstance(doc, dict) else None
-    if not isinstance(gains, list) or len(gains) != n:
-        count = len(gains) if isinstance(gains, list) else 0
-        raise DataError(f"expected {n} gains, found {count}", file=path, key="gains")
-    values, stds = [], []
-    for i, g in enumerate(gains):
-        v = g.get("value") if isinstance(g, dict) else None
-        if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v == 0:
-            raise DataError(f"not a non-zero number: {v!r}", file=path, key=f"gains[{i}].value")
-        values.append(float(v))
-        s = g.get("std")
-        stds.append(float(s) if isinstance(s, int | float) and not isinstance(s, bool) else None)
-    std = None if any(s is None for s in stds) else np.array(stds, dtype=float)
-    return np.array(values), std
-
-
-@dataclass
-class LoadedRun:
-    """A run read from its log and made uniform in time (only what identification uses)."""
-
-    label: str
-    path: Path
-    meta: dict[str, str]
-    attachments: dict[str, bytes]
-    t0: float
-    q: np.ndarray
-    current: np.ndarray
-    rate_hz: float
-    payload: Payload | None
-    notes: list[str] = field(default_factory=list)
-
-
-def _uniform(log: RunLog, path: Path) -> tuple[np.ndarray, np.ndarray, list[str]]:
-    """Positions and currents on every SYNC cycle, filling short gaps by interpolation."""
-    missing = log.missing_cycles()
-    if missing == 0:
-        return log.position, log.current_reference, []
-    cycles = log.cycle - log.cycle[0]
-    total = int(cycles[-1]) + 1
-    gap = int(np.max(np.diff(cycles))) - 1
-    if missing > MAX_MISSING_FRACTION * total or gap > MAX_GAP_CYCLES:
-        raise DataError(
-            f"{missing} of {total} SYNC cycles are missing (longest gap {gap}): too many to "
-            "interpolate",
-            file=path,
-        )
-    grid = np.arange(total)
-    q = np.column_stack([np.interp(grid, cycles, c) for c in log.position.T])
-    v = np.column_stack([np.interp(grid, cycles, c) for c in log.current_reference.T])
-    return q, v, [f"{missing} missing SYNC cycles filled by linear interpolation"]
-
-
-def load_run(path: Path, robot: Robot, label: str, payload: Payload | None) -> LoadedRun:
-    """Read one run log for ``robot``.
-
-    Raises
-    ------
-    DataError
-        Unreadable log, wrong joint count, NaN, non-monotonic time, large gaps.
-    """
-    log = read_run(path, robot.n)
-    q, v, notes = _uniform(log, path)
-    if log.truncated:
-        notes.append(f"truncated log: {log.messages_recovered} messages recovered")
-    if log.meta.get("robot") not in (None, robot.name):
-        notes.append(f"recorded on robot {log.meta.get('robot')!r}, identified as {robot.name!r}")
-    logged_payload = log.meta.get("payload", "none")
-    if payload is None and logged_payload not in ("none", ""):
-        notes.append(f"the log names payload {logged_payload!r} but the run is used unloaded")
-    if payload is not None and logged_payload not in (payload.name, "none", ""):
-        notes.append(f"the log names payload {logged_payload!r}, the payload file {payload.name!r}")
-    unit = log.meta.get("current_unit")
-    if unit:
-        notes.append(f"current references in {unit}")
-    # The log's other arrays (measured currents, set-points, cycles) are not kept: for long
-    # runs they are most of the memory.
-    return LoadedRun(
-        label=label,
-        path=path,
-        meta=dict(log.meta),
-        attachments=dict(log.attachments),
-        t0=float(log.t[0]),
-        q=q,
-        current=v,
-        rate_hz=log.rate_hz,
-        payload=payload,
-        notes=notes,
-    )
+    current: str = "reference"  # --current: reference or measured
 
 
 # --------------------------------------------------------------------------------------------
@@ -270,8 +141,8 @@ class IdentifyOutcome:
 
 
 def _check_request(req: IdentifyRequest) -> None:
-    if req.loaded is not None and req.payload is None:
-        raise InputError("a loaded run needs its payload file", key="--payload")
+    if req.current not in CURRENT_CHANNELS:
+        raise InputError(f"expected one of {', '.join(CURRENT_CHANNELS)}", key="--current")
     if req.payload is not None and req.loaded is None:
         raise InputError("a payload file needs the loaded run it was fixed to", key="--loaded")
     if req.validate is not None and req.validate_payload is None:
@@ -306,6 +177,8 @@ def _run_info(run: LoadedRun, prepared: PreparedRun) -> RunInfo:
         rate_hz=run.rate_hz,
         decimated_rate_hz=prepared.rate_hz,
         payload=run.payload.name if run.payload is not None else "none",
+        time_base=None if run.time_base is None else run.time_base.as_dict(),
+        current=run.channel,
         filter=None
         if st is None
         else {
@@ -340,7 +213,7 @@ def _load_and_prepare(
     prepared, infos, metas = [], [], []
     for path, label, pay in specs:
         task = display.progress.add_task(f"reading {label} run", total=None)
-        run = load_run(path, model.robot, label, pay)
+        run = load_run(path, model.robot, label, pay, req.current)
         settings = _filter_for(run, req)
         display.progress.update(
             task, description=f"{label}: filters, regressor, decimation", total=run.q.shape[0]
@@ -473,9 +346,13 @@ def run_identify(req: IdentifyRequest) -> IdentifyOutcome:
 
 def _run_identify(req: IdentifyRequest) -> IdentifyOutcome:
     _check_request(req)
-    robot = load_robot(req.robot)
+    robot = load_robot(req.robot, acquisition=False)  # encoder counts etc. not needed here
     form = WristFriction(req.friction) if req.friction else robot.wrist_friction
     payload = load_payload(req.payload, robot.n) if req.payload is not None else None
+    header_b = read_header(req.loaded) if req.loaded is not None else None
+    check_roles(read_header(req.unloaded), header_b)
+    if header_b is not None and payload is None:
+        payload = attached_payload(header_b, robot.n)
     vpayload = (
         load_payload(req.validate_payload, robot.n) if req.validate_payload is not None else None
     )
@@ -502,15 +379,22 @@ def _run_identify(req: IdentifyRequest) -> IdentifyOutcome:
         )
         task = display.progress.add_task("identification", total=None)
         options = Options(friction=form, gains=given, alpha=req.alpha)
-        result = run_procedure(
-            problem, options, step=lambda s: display.progress.update(task, description=s)
-        )
+        try:
+            result = run_procedure(
+                problem, options, step=lambda s: display.progress.update(task, description=s)
+            )
+        except IdentificationError as exc:
+            if req.loaded is None or given is not None:
+                raise
+            raise IdentificationError(f"{exc}; {other_channel_hint(req.current)}") from None
+        result.warnings.extend(current_warnings(result, req.current))
         display.progress.update(task, description="reports and plots")
         expressions = {
             name: expr
             for name, expr in zip(bases[form].names, bases[form].expressions, strict=True)
         }
         doc = report_json(result, robot, infos, expressions)
+        doc["method"]["apriori_from_gear_ratio"] = list(robot.apriori_from_gear_ratio)
         with _staging(req.out) as tmp:
             from drivegain.identify.plots import write_plots
 
@@ -541,13 +425,16 @@ def _summary(outcome: IdentifyOutcome, robot_names: list[str]) -> str:
     lines = [
         f"identify: {m['estimator']}"
         + (f" (α = {m['alpha']:.3g})" if m["alpha"] is not None else "")
-        + f", friction form {m['friction']}, {m['samples']} samples, gains: {res.gains_source}"
+        + (f", friction form {m['friction']}" if outcome.robot.couplings else "")
+        + f", {m['samples']} samples, gains: {res.gains_source}"
     ]
-    lines.append(f"{'joint':<6}{'a priori':>10}{'gain':>10}{'2σ':>9}{'%σ':>7}")
+    # Columns as wide as the longest joint name; gains in N·m/A.
+    w = max(6, *(len(nm) + 1 for nm in robot_names))
+    lines.append(f"{'joint':<{w}}{'a priori':>10}{'gain':>10}{'2σ':>9}{'%σ':>7}  (N·m/A)")
     for j, name in enumerate(robot_names):
         std = "" if res.gains_std is None else f"{2 * res.gains_std[j]:9.3g}"
         rsd = "" if res.gains_std is None else f"{100 * res.gains_std[j] / abs(res.gains[j]):7.2f}"
-        lines.append(f"{name:<6}{res.apriori[j]:10.4g}{res.gains[j]:10.4g}{std}{rsd}")
+        lines.append(f"{name:<{w}}{res.apriori[j]:10.4g}{res.gains[j]:10.4g}{std}{rsd}")
     fin = res.final
     if fin.payloads:
         p = fin.payloads[0]
@@ -587,6 +474,7 @@ def identify_command(args: argparse.Namespace) -> int:
         reference=getattr(args, "reference", None),
         progress=True,
         consistent=cr.request_from_args(args),
+        current=getattr(args, "current", None) or "reference",
     )
     outcome = run_identify(req)
     print(_summary(outcome, outcome.robot.joint_names))

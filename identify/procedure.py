@@ -32,6 +32,7 @@ import numpy as np
 from drivegain.config.robot import Robot, WristFriction
 from drivegain.dynamics.base import BaseParameters
 from drivegain.errors import InputError
+from drivegain.identify.blas import limited_blas_threads
 from drivegain.identify.cases import CaseResult, fit_case
 from drivegain.identify.checks import Check, physical_checks
 from drivegain.identify.crossval import CV_FRACTION, CrossValidation, cross_validate
@@ -213,7 +214,18 @@ def run_procedure(problem: Problem, options: Options, step: Step = no_step) -> P
         payload) or the friction form has no prepared base parameters.
     IdentificationError
         The data cannot determine the unknowns.
+
+    Notes
+    -----
+    OpenBLAS runs single-threaded meanwhile (:mod:`.blas`): its threads make the many small
+    factorisations 10-25 times slower on busy cores, so the library call is as fast as the
+    command line (which used to be the only place that set the limit).
     """
+    with limited_blas_threads(1):
+        return _run_procedure(problem, options, step)
+
+
+def _run_procedure(problem: Problem, options: Options, step: Step) -> ProcedureResult:
     robot = problem.robot
     form = options.friction
     if form not in problem.bases:
@@ -292,7 +304,8 @@ def run_procedure(problem: Problem, options: Options, step: Step = no_step) -> P
     step("Cross-validation")
     cv = cross_validate(main, final.gains, names, options.cv_fraction)
     forms = {form: FormFit(form=form, case=final, cv=cv)}
-    if options.compare_forms:
+    if options.compare_forms and robot.couplings:
+        # The forms differ only in the coupled motors' friction: nothing to compare without.
         for other, obp in problem.bases.items():
             if other is form:
                 continue

@@ -19,6 +19,7 @@ from drivegain.config.payload import PAYLOAD_PARAMS
 from drivegain.config.robot import Robot
 from drivegain.identify.cases import CaseResult, PayloadEstimate
 from drivegain.identify.procedure import ProcedureResult
+from drivegain.identify.units import GAIN_UNIT, parameter_unit
 
 FORMAT_VERSION = 1
 #: Held-out residual norms closer than this fraction do not tell two friction forms apart.
@@ -40,6 +41,8 @@ class RunInfo:
     payload: str
     filter: Mapping[str, Any] | None
     notes: list[str] = field(default_factory=list)
+    time_base: Mapping[str, Any] | None = None
+    current: str = "reference"
 
 
 def _num(x: float | np.floating[Any] | None) -> float | None:
@@ -168,6 +171,8 @@ def report_json(
             "payload": r.payload,
             "filter": dict(r.filter) if r.filter is not None else None,
             "notes": list(r.notes),
+            "time_base": None if r.time_base is None else dict(r.time_base),
+            "current": r.current,
         }
         for r in runs
     ]
@@ -180,6 +185,8 @@ def report_json(
         doc["wtls"] = {
             "alpha": _num(w.fit.alpha),
             "alpha_curve": [[_num(a), _num(e)] for a, e in w.alpha_curve],
+            "alpha_failures": [{"alpha": _num(a), "error": msg} for a, msg in w.failures],
+            "alpha_curve_flatness": _num(w.alpha_flatness),
             "relative_error": _num(w.fit.relative_error),
             "relative_error_unweighted": _num(w.fit.relative_error_unweighted),
             "singular_values": [_num(s) for s in tls.singular_values],
@@ -258,7 +265,7 @@ def _payload_rows(cases: Sequence[PayloadEstimate]) -> list[list[str]]:
     rows = []
     for i, p in enumerate(PAYLOAD_PARAMS):
         name = "M" if p == "M" else p
-        row = [f"{name}_L", _g(float(cases[0].nominal[i]))]
+        row = [f"{name}_L", parameter_unit(p), _g(float(cases[0].nominal[i]))]
         for c in cases:
             row += [
                 _g(float(c.values[i])),
@@ -282,7 +289,8 @@ def markdown_report(
     lines += [
         f"- Gains: **{m['estimator'] if result.wtls else 'not identified'}**"
         f" ({'identified' if result.wtls else 'source: ' + result.gains_source});"
-        f" parameters by IDIM-WLS; coupled-wrist friction form `{m['friction']}`.",
+        " parameters by IDIM-WLS"
+        + (f"; coupled-wrist friction form `{m['friction']}`." if robot.couplings else "."),
         f"- Samples used (after decimation): {m['samples']}"
         + (f"; α = {_g(m['alpha'])}" if m["alpha"] is not None else "")
         + ".",
@@ -318,11 +326,11 @@ def markdown_report(
 
     lines += ["", "## Drive gains (Table 3)", ""]
     header = ["", *robot.joint_names]
-    rows = [["a priori g", *[_g(float(g)) for g in result.apriori]]]
+    rows = [[f"a priori g ({GAIN_UNIT})", *[_g(float(g)) for g in result.apriori]]]
     label = "identified g" if result.wtls else f"used g ({result.gains_source})"
-    rows.append([label, *[_g(float(g)) for g in result.gains]])
+    rows.append([f"{label} ({GAIN_UNIT})", *[_g(float(g)) for g in result.gains]])
     if result.gains_std is not None:
-        rows.append(["2σ", *[_g(2 * float(s), 3) for s in result.gains_std]])
+        rows.append([f"2σ ({GAIN_UNIT})", *[_g(2 * float(s), 3) for s in result.gains_std]])
         rows.append(
             [
                 "%σ",
@@ -346,11 +354,11 @@ def markdown_report(
     if result.final.payloads:
         lines += ["", "## Payload parameters (Table 2)", ""]
         cases = [result.case1] + ([result.case2] if result.case2 is not None else [])
-        head = ["par.", "nominal"]
+        head = ["par.", "unit", "nominal"]
         for c in cases:
             head += [f"{c.name} value", "2σ", "%σ"]
         lines += _table(head, _payload_rows([c.payloads[0] for c in cases]))
-        lines += ["", "Units: kg·m² (inertia at the frame origin), kg·m, kg."]
+        lines += ["", "Inertia at the frame origin of the link the payload is fixed to."]
 
     lines += ["", "## Quality of identification (Table 4)", ""]
     rows = []
@@ -387,7 +395,7 @@ def markdown_report(
     if result.validation:
         lines += ["", "## Validation payload (Table 5)", ""]
         vcases = list(result.validation.values())
-        head = ["par.", "nominal"]
+        head = ["par.", "unit", "nominal"]
         for c in vcases:
             head += [f"{c.name} value", "2σ", "%σ"]
         lines += _table(head, _payload_rows([c.payloads[0] for c in vcases]))
@@ -423,9 +431,15 @@ def markdown_report(
     if result.checks:
         lines += ["", "## Physical plausibility", ""]
         lines += _table(
-            ["parameter", "value", "2σ", "status"],
+            ["parameter", "value", "2σ", "unit", "status"],
             [
-                [c.name, _g(c.value), _g(2 * c.std, 3), "ok" if c.ok else f"**flagged**: {c.note}"]
+                [
+                    c.name,
+                    _g(c.value),
+                    _g(2 * c.std, 3),
+                    parameter_unit(c.name),
+                    "ok" if c.ok else f"**flagged**: {c.note}",
+                ]
                 for c in result.checks
             ],
         )
@@ -436,7 +450,15 @@ def markdown_report(
         lines += ["", "## IDIM-WTLS diagnostics", ""]
         lines += [
             f"- α = {_g(w.fit.alpha)} chosen by the weighted relative error norm "
-            f"({len(w.alpha_curve)} values tried; curve in `{plots.get('alpha', '–')}`).",
+            f"({len(w.alpha_curve)} values tried; curve in `{plots.get('alpha', '–')}`)"
+            + (
+                ""
+                if w.alpha_flatness is None
+                else f"; the norm varies by {_g(w.alpha_flatness, 2)} (relative) over the "
+                "curve" + (": flat, α hardly matters" if w.alpha_flatness < 1e-4 else "")
+            )
+            + ".",
+            *[f"- α = {_g(a)} failed: {msg}" for a, msg in w.failures],
             f"- Two smallest singular values: {_g(float(t.singular_values[-2]))}, "
             f"{_g(float(t.singular_values[-1]))} (ratio {_g(t.gap)}); |δ| in the singular "
             f"vector {_g(t.delta_component)}.",
@@ -453,14 +475,16 @@ def markdown_report(
         ]
 
     lines += ["", "## Base parameters", ""]
+    lines += ["Units for revolute joints; a regrouped parameter has its leading term's.", ""]
     lines += _table(
-        ["parameter", "value", "2σ", "%σ", "expression"],
+        ["parameter", "value", "2σ", "%σ", "unit", "expression"],
         [
             [
                 b["name"],
                 _g(b["value"]),
                 _g(None if b["std"] is None else 2 * b["std"], 3),
                 _g(b["rel_std_percent"], 3),
+                parameter_unit(b["name"]),
                 b["expression"],
             ]
             for b in doc["base_parameters"]

@@ -62,7 +62,7 @@ def _mutate(tmp_path: Path, source: Path, old: str, new: str, count: int = 1) ->
 
 ROBOT_CASES = [
     # (description, old text, new text, expected message after "<file>: ")
-    ("missing key", "apriori_gain = 32.96\n", "", "key 'joint[0].apriori_gain': missing"),
+    ("missing key", "gear_ratio = 32.0\n", "", "key 'joint[0].gear_ratio': missing"),
     (
         "mistyped key",
         "velocity_limit = 5.009094953223726          # 287 deg/s\nacceleration_limit = 12.0",
@@ -297,3 +297,49 @@ def test_physically_impossible_values_are_refused_at_load(
     msg = str(exc.value)
     assert str(bad) in msg and key in msg and "must be finite" in msg
     assert "\n" not in msg
+
+
+# --- issue 16, item 6: what identification needs of a robot file ----------------------------
+
+
+def _strip(tmp_path: Path, keys: tuple[str, ...]) -> Path:
+    """The TX-40 file without the lines setting ``keys``."""
+    lines = [ln for ln in TX40.read_text().splitlines() if ln.split("=")[0].strip() not in keys]
+    out = tmp_path / "bare.toml"
+    out.write_text("\n".join(lines) + "\n")
+    return out
+
+
+def test_identification_reads_a_robot_file_without_acquisition_keys(tmp_path: Path) -> None:
+    from drivegain.config.robot import ACQUISITION_KEYS
+
+    bare = _strip(tmp_path, (*ACQUISITION_KEYS, "apriori_gain"))
+    full = load_robot(TX40)
+    robot = load_robot(bare, acquisition=False)
+    assert robot.joint_names == full.joint_names
+    assert [j.mdh for j in robot.joints] == [j.mdh for j in full.joints]
+    np.testing.assert_array_equal(robot.gear_ratios, full.gear_ratios)
+    np.testing.assert_array_equal(robot.transmission(), full.transmission())
+    # A priori gains omitted: the gear ratios (signed).
+    np.testing.assert_array_equal(robot.apriori_gains, [32, 32, 45, -48, 45, 32])
+    assert robot.apriori_from_gear_ratio == tuple(full.joint_names)
+    assert len(robot.missing) == 6 * len(ACQUISITION_KEYS)
+    assert "joint[0].encoder_counts" in robot.missing
+    # Acquisition still requires them, with one clear line.
+    with pytest.raises(ConfigError) as info:
+        load_robot(bare)
+    assert str(info.value) == f"{bare}: key 'joint[0].acceleration_limit': missing"
+
+
+def test_zero_apriori_gain_is_the_gear_ratio_not_an_error(tmp_path: Path) -> None:
+    path = _mutate(tmp_path, TX40, "apriori_gain = 32.96\n", "apriori_gain = 0.0\n")
+    for acquisition in (True, False):
+        robot = load_robot(path, acquisition=acquisition)
+        assert robot.apriori_gains[0] == robot.gear_ratios[0] == 32.0
+        assert robot.apriori_gains[1] == 32.96
+        assert robot.apriori_from_gear_ratio == ("j1",)
+
+
+def test_shipped_robot_is_the_same_for_acquisition_and_identification() -> None:
+    a, b = load_robot(TX40), load_robot(TX40, acquisition=False)
+    assert a.joints == b.joints and b.missing == () and b.apriori_from_gear_ratio == ()
