@@ -6,6 +6,7 @@ import argparse
 import logging
 import sys
 
+from drivegain.drivers.bus import BusOverrides
 from drivegain.errors import DrivegainError, InputError
 
 log = logging.getLogger(__name__)
@@ -27,9 +28,13 @@ def acquire(args: argparse.Namespace) -> int:
     from drivegain.drivers.clock import Clock
 
     quiet_libraries(args.debug)
-    cfg = load_acquisition_config(args.config)
+    cfg = load_acquisition_config(args.config, _overrides(args))
     request = RunRequest(
-        trajectory=args.trajectory, out=args.out, label=args.label, payload=args.payload
+        trajectory=args.trajectory,
+        out=args.out,
+        label=args.label,
+        payload=args.payload,
+        can_trace=getattr(args, "can_trace", None),
     )
     stop = StopRequest()
     with stop_on_signals(stop, lambda name: log.warning("%s received: stopping the run", name)):
@@ -66,7 +71,7 @@ def daemon(args: argparse.Namespace) -> int:
     from drivegain.acquire.stop import stop_on_signals
     from drivegain.errors import ConfigError
 
-    cfg = load_acquisition_config(args.config)
+    cfg = load_acquisition_config(args.config, _overrides(args))
     if cfg.daemon is None:
         raise ConfigError("a [daemon] table is needed to run the daemon", file=cfg.source)
     configure(cfg.daemon.log_format, debug=args.debug)
@@ -81,5 +86,19 @@ def demo(args: argparse.Namespace) -> int:
     from drivegain.acquire.logs import quiet_libraries
 
     quiet_libraries(args.debug)
-    run_demo(args.out, seed=args.seed, trajectory=getattr(args, "trajectory", None))
+    run_demo(
+        args.out,
+        seed=args.seed,
+        trajectory=getattr(args, "trajectory", None),
+        bus_overrides=_overrides(args),
+        robot=getattr(args, "robot", "tx40"),
+    )
     return 0
+
+
+def _overrides(args: argparse.Namespace) -> BusOverrides | None:
+    """The command line's ``--interface/--channel/--bitrate``, if any was given."""
+    from drivegain.cli import bus_overrides
+
+    given = BusOverrides(**bus_overrides(args))
+    return given if given.given else None

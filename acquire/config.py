@@ -15,16 +15,39 @@ from pathlib import Path
 import numpy as np
 
 from drivegain.acquire.supervision import Supervision
-from drivegain.config._toml import Table, read_toml
+from drivegain.config._toml import Table, read_root
 from drivegain.config.robot import Robot, load_robot
 from drivegain.config.schema import PathRule, derived, keys_of, load_table, setting
-from drivegain.drivers.bus import BusConfig, bus_config_from_table, default_tpdo_timeout
+from drivegain.drivers.bus import (
+    BusConfig,
+    BusOverrides,
+    bus_config_from_python_can,
+    bus_config_from_table,
+    default_tpdo_timeout,
+    with_overrides,
+)
 from drivegain.drivers.clock import Clock
+from drivegain.drivers.heartbeat import (
+    CONSUMER_PERIODS,
+    DEFAULT_MASTER_HEARTBEAT_S,
+    DEFAULT_MASTER_NODE_ID,
+)
 from drivegain.drivers.ipcbus import INTERFACE as IPC_INTERFACE
-from drivegain.drivers.simconfig import SimConfig, sim_config_from_table
+from drivegain.drivers.link import Timeouts
+from drivegain.drivers.simconfig import SimConfig, check_fault_nodes, sim_config_from_table
 
 #: Buses a simulated cell may be attached to.
 SIMULATION_INTERFACES = ("virtual", IPC_INTERFACE)
+#: Kernel CAN devices simulated drives may use: Linux's virtual CAN (``vcan0``...), which no real
+#: drive is ever on. A real interface (``can0``) is never given to simulated drives.
+SIMULATION_SOCKETCAN_PREFIX = "vcan"
+
+
+def simulation_bus_allowed(interface: str, channel: str) -> bool:
+    """Whether simulated drives may run on this bus (never on one a real drive may be on)."""
+    if interface in SIMULATION_INTERFACES:
+        return True
+    return interface == "socketcan" and channel.startswith(SIMULATION_SOCKETCAN_PREFIX)
 
 
 class LogFormat(StrEnum):
@@ -36,7 +59,9 @@ class LogFormat(StrEnum):
 
 @dataclass(frozen=True)
 class DaemonSettings:
-    """``[daemon]``: control socket, where runs are written, log style, idle check period (s).
+    """``[daemon]``: control socket, where runs are written, log style, idle check period (s),
+    and the limits that keep clients from knocking the service over: concurrent connections,
+    idle time-out of a connection, replies held for a slow reader.
 
     Locations are relative to the daemon's working directory.
     """
@@ -52,6 +77,31 @@ class DaemonSettings:
     watchdog_s: float | None = field(
         default=None,
         metadata=setting(unit="s", gt=0.0, doc="systemd watchdog period (default from systemd)"),
+    )
+    max_clients: int = field(
+        default=16,
+        metadata=setting(
+            ge=1,
+            le=1024,
+            message="must be 1..1024 connections, got {value}",
+            doc="concurrent control connections; more are refused with a one-line JSON error",
+        ),
+    )
+    client_idle_s: float = field(
+        default=300.0,
+        metadata=setting(
+            unit="s", gt=0.0, doc="a connection that sends nothing this long is closed"
+        ),
+    )
+    client_buffer_bytes: int = field(
+        default=1 << 20,
+        metadata=setting(
+            unit="bytes",
+            ge=4096,
+            le=1 << 30,
+            message="must be 4096..1073741824 bytes, got {value}",
+            doc="replies held for a client that does not read them; past this it is dropped",
+        ),
     )
 
 
@@ -100,7 +150,10 @@ class AcquisitionSettings:
     ``queue_s`` is the seconds of cycles the recorder may hold in memory; ``settle_s`` the time
     the final setpoint is held before disabling; ``bus_load_warn`` the bus load fraction above
     which a run is allowed with a warning; ``tpdo_timeout_s`` how long after a SYNC a TPDO
-    missing is a fault (TPDOs later than one period but within it are counted as late).
+    missing is a fault (TPDOs later than one period but within it are counted as late);
+    ``heartbeat_timeout_s`` how long a drive's heartbeat may stay away;
+    ``master_node_id`` and ``master_heartbeat_s`` the master's own heartbeat, which every drive
+    is told to watch (0x1016, time-out three periods): a drive that misses it stops the robot.
     """
 
     robot_path: Path = field(
@@ -157,6 +210,37 @@ class AcquisitionSettings:
             "drivegain.drivers.bus.default_tpdo_timeout)",
         ),
     )
+    heartbeat_timeout_s: float = field(
+        default=Timeouts.heartbeat_s,
+        metadata=setting(
+            unit="s",
+            gt=Timeouts.heartbeat_producer_s,
+            message=f"must exceed the drives' heartbeat period ({Timeouts.heartbeat_producer_s} "
+            "s), got {value}",
+            doc="a drive whose heartbeat stays away this long is lost (simulated time in lockstep)",
+        ),
+    )
+    master_node_id: int = field(
+        default=DEFAULT_MASTER_NODE_ID,
+        metadata=setting(
+            ge=1,
+            le=127,
+            message="must be a node id 1..127, got {value}",
+            doc="node id of the master's heartbeat (no drive may have it)",
+        ),
+    )
+    master_heartbeat_s: float = field(
+        default=DEFAULT_MASTER_HEARTBEAT_S,
+        metadata=setting(
+            unit="s",
+            gt=0.0,
+            ge=0.001,
+            le=65.535 / CONSUMER_PERIODS,
+            message=f"must be 0.001..{65.535 / CONSUMER_PERIODS:.3f} s, got {{value}}",
+            doc=f"period of the master's heartbeat; the drives stop after {CONSUMER_PERIODS} "
+            "periods without it",
+        ),
+    )
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -185,8 +269,18 @@ class AcquisitionConfig(AcquisitionSettings):
         return max(64, int(self.queue_s / self.period_s))
 
 
-def load_acquisition_config(path: str | Path) -> AcquisitionConfig:
+def load_acquisition_config(
+    path: str | Path, bus_overrides: BusOverrides | None = None
+) -> AcquisitionConfig:
     """Load and validate an acquisition TOML.
+
+    Parameters
+    ----------
+    path
+        The TOML. Without a ``[bus]`` table the bus is python-can's own configuration
+        (:func:`~drivegain.drivers.bus.bus_config_from_python_can`).
+    bus_overrides
+        The command line's ``--interface/--channel/--bitrate``, applied over the file's bus.
 
     Raises
     ------
@@ -194,22 +288,33 @@ def load_acquisition_config(path: str | Path) -> AcquisitionConfig:
         One line naming the file and the key at fault.
     """
     p = Path(path)
-    root = Table(read_toml(p), p)
-    root.reject_unknown({"acquisition", "bus", "simulation", "daemon"})
+    root = read_root(p, {"acquisition", "bus", "simulation", "daemon"})
     a = root.table("acquisition")
     base = p.resolve().parent
     settings = load_table(AcquisitionSettings, a, base_dir=base, also=keys_of(SupervisionSettings))
     limits = load_table(SupervisionSettings, a, also=keys_of(AcquisitionSettings))
     robot = load_robot(settings.robot_path)
+    if settings.master_node_id in robot.node_ids:
+        raise a.error(
+            "master_node_id",
+            f"{settings.master_node_id} is the node id of a drive (robot {robot.node_ids})",
+        )
     supervision = _supervision(a, limits, robot)
-    bus = bus_config_from_table(root.table("bus"))
+    if root.has("bus"):
+        bus = bus_config_from_table(root.table("bus"))
+    else:
+        bus = bus_config_from_python_can(str(p))
+    if bus_overrides is not None:
+        bus = with_overrides(bus, **bus_overrides.__dict__, source=str(p))
     sim = sim_config_from_table(root.table("simulation"), base) if root.has("simulation") else None
-    if sim is not None and bus.interface not in SIMULATION_INTERFACES:
+    if sim is not None:
+        check_fault_nodes(sim, robot.node_ids, root.table("simulation"))
+    if sim is not None and not simulation_bus_allowed(bus.interface, bus.channel):
         raise root.table("bus").error(
             "interface",
-            f"a [simulation] runs on the virtual bus (drives in this process) or {IPC_INTERFACE} "
-            f"(drives in a child process), not {bus.interface}: simulated drives never go on a "
-            "real bus",
+            f"a [simulation] runs on the virtual bus (drives in this process), {IPC_INTERFACE} "
+            f"(drives in a child process) or socketcan on a Linux vcan device, not "
+            f"{bus.interface} channel {bus.channel!r}: simulated drives never go on a real bus",
         )
     daemon = load_table(DaemonSettings, root.table("daemon")) if root.has("daemon") else None
     clock = sim.clock if sim is not None else Clock.REALTIME

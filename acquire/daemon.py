@@ -1,28 +1,30 @@
 """The long-running acquisition service behind a Unix control socket.
 
-Protocol: one JSON object per line, one reply line per request.
+Protocol: one JSON object per line, one reply line per request, in order.
 
-- ``{"cmd": "status"}`` → ``{"ok": true, "state": "idle" | "running" | "fault", ...}``
+- ``{"cmd": "status"}`` → ``{"ok": true, "state": "idle" | "preparing" | "running" | "fault",
+  ...}``
 - ``{"cmd": "run", "trajectory": "/abs/traj.json", "label": "unloaded", "payload": null}``
-  → ``{"ok": true, "out": "/.../20250101T120000Z-unloaded.mcap", ...}``; refused while a run is
-  in progress.
-- ``{"cmd": "stop"}`` → the run in progress decelerates to rest and finishes its log.
+  → ``{"ok": true, "out": "/.../20250101T120000Z-unloaded.mcap", ...}`` once the request's
+  checks passed and the motion is planned; refused while a run is prepared or in progress.
+- ``{"cmd": "stop"}`` → the run in progress decelerates to rest and finishes its log (a run
+  still under its checks is abandoned).
 
 A malformed request gets ``{"ok": false, "error": "..."}`` and the daemon keeps serving. The
-socket is created with permissions 0600 (owner only) and a peer of another user is refused.
-While idle the daemon watches the drives (heartbeats, EMCY) through :meth:`Master.check`.
-systemd ``Type=notify``: READY=1 once the drives are booted and the socket listens, STATUS=
-on every change, WATCHDOG=1 at half of ``WATCHDOG_USEC`` while the service is healthy.
+connections and their limits (count, idle time-out, reply buffers, accept errors) are
+:mod:`.control`'s. The checks of a ``run`` (files, limits of the trajectory and payload) run on a
+worker thread before any drive is touched, so the loop keeps answering and a SIGTERM is honoured
+at once (the checks are abandoned). While idle the daemon watches the drives (heartbeats, EMCY)
+through :meth:`Master.check`. Whatever ends the service, a run in progress is brought to rest
+before the drives and the bus are closed. systemd ``Type=notify``: READY=1 once the drives are
+booted and the socket listens, STATUS= on every change, WATCHDOG=1 at half of ``WATCHDOG_USEC``
+while the service is healthy.
 """
 
 from __future__ import annotations
 
-import json
 import logging
 import os
-import selectors
-import socket
-import struct
 import threading
 import time
 from dataclasses import dataclass, field
@@ -32,18 +34,24 @@ from typing import Any, Protocol
 
 from drivegain import __version__
 from drivegain.acquire.config import AcquisitionConfig, DaemonSettings
-from drivegain.acquire.request import RunRequest, prepare_run
+from drivegain.acquire.control import Client, ControlServer, RequestError, parse_request
+from drivegain.acquire.control import read_reply as read_reply
+from drivegain.acquire.control import request as request
+from drivegain.acquire.foreground import run_session
+from drivegain.acquire.recorder import discard_unrecorded
+from drivegain.acquire.request import PrepareJob, RunRequest
 from drivegain.acquire.request import validate_label as _validate_label
 from drivegain.acquire.rig import Rig
 from drivegain.acquire.session import RunResult, RunState, Session
 from drivegain.acquire.stop import StopRequest
 from drivegain.errors import ConfigError, DrivegainError, InputError
-from drivegain.unixsock import NotASocket, SocketInUse, bind_private
 
 log = logging.getLogger(__name__)
 
-MAX_LINE = 64 * 1024
 _CYCLING = {RunState.APPROACH, RunState.EXCITATION, RunState.RETREAT, RunState.STOPPING}
+#: How long the teardown waits for a run to come to rest after a stop request, s, before it
+#: asks for a quick stop (then as long again before closing regardless).
+STOP_WAIT_S = 15.0
 
 
 class Notifier(Protocol):
@@ -52,16 +60,13 @@ class Notifier(Protocol):
     def notify(self, state: str) -> None: ...
 
 
-class RequestError(InputError):
-    """A control request that cannot be served (the reply carries the message)."""
-
-
 @dataclass
-class _Client:
-    sock: socket.socket
-    buffer: bytearray = field(default_factory=bytearray)
-    out: bytearray = field(default_factory=bytearray)
-    closing: bool = False
+class _Preparing:
+    """A ``run`` request under its checks on a worker (:class:`PrepareJob`)."""
+
+    job: PrepareJob
+    client: Client | None
+    label: str
 
 
 @dataclass
@@ -116,13 +121,11 @@ class Daemon:
         self.rig: Rig | None = None
         self.fault: str | None = None
         self.active: _ActiveRun | None = None
+        self.preparing: _Preparing | None = None
         self.last_run: dict[str, Any] | None = None
         self.runs = 0
-        self._listener: socket.socket | None = None
-        self._selector = selectors.DefaultSelector()
-        self._clients: dict[int, _Client] = {}
+        self.server = ControlServer(self.settings, self._handle, cfg.source)
         self._status_text = ""
-        self._uid = os.getuid()
 
     # -- lifecycle -----------------------------------------------------------------------------
 
@@ -137,7 +140,7 @@ class Daemon:
                 file=self.cfg.source,
                 key="daemon.output_dir",
             ) from None
-        self._listen()
+        self.server.listen()
         try:
             self._boot()
             self._notify("READY=1")
@@ -163,40 +166,51 @@ class Daemon:
             log.error("drives did not boot: %s", exc, extra={"event": "fault"})
         self._update_status()
 
-    def _listen(self) -> None:
-        path = self.settings.socket
-        path.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
-        try:
-            listener = bind_private(path, socket.SOCK_STREAM)
-        except NotASocket:
-            raise ConfigError(
-                f"{path} exists and is not a socket", file=self.cfg.source, key="daemon.socket"
-            ) from None
-        except SocketInUse:
-            raise ConfigError(
-                f"another daemon is listening on {path}", file=self.cfg.source, key="daemon.socket"
-            ) from None
-        listener.listen(8)
-        listener.setblocking(False)
-        self._selector.register(listener, selectors.EVENT_READ, None)
-        self._listener = listener
-
     def _teardown(self) -> None:
-        for client in list(self._clients.values()):
-            self._close_client(client)
-        if self._listener is not None:
-            self._selector.unregister(self._listener)
-            self._listener.close()
-            self._listener = None
+        """Stop the motion first, then the connections, then the drives and the bus."""
+        try:
+            self._stop_active_run()
+        finally:
+            self._abandon_preparing("the daemon is shutting down")
             try:
-                self.settings.socket.unlink()
-            except OSError:
-                pass
-        if self.rig is not None:
-            self.rig.close()
-            self.rig = None
-        self._selector.close()
+                self.server.close()
+            finally:
+                if self.rig is not None:
+                    self.rig.close()
+                    self.rig = None
         log.info("daemon stopped", extra={"event": "stopped"})
+
+    def _stop_active_run(self) -> None:
+        """Bring a run in progress to rest and let its session end (log finished).
+
+        Whatever ends the service (a signal, a bug in the loop), the bus is never closed
+        under a moving robot: a stop request first, a quick stop if the run does not end
+        within :data:`STOP_WAIT_S`.
+        """
+        run = self.active
+        if run is None:
+            return
+        if not run.stop.requested:
+            run.stop.request(self.shutdown.reason or "daemon teardown")
+        forwarded = self.shutdown.count
+        deadline = time.monotonic() + STOP_WAIT_S
+        urgent = False
+        while run.thread.is_alive():
+            run.thread.join(0.1)
+            now = time.monotonic()
+            if self.shutdown.count > forwarded and not urgent:
+                forwarded = self.shutdown.count
+                run.stop.request(self.shutdown.reason or "shutdown")  # a second: quick stop
+                urgent = True
+            if now >= deadline:
+                if urgent:
+                    log.error("the run did not end after a quick stop: closing the drives")
+                    break
+                log.error("the run did not come to rest in %.0f s: quick stop", STOP_WAIT_S)
+                run.stop.request("teardown time-out")
+                urgent = True
+                deadline = now + STOP_WAIT_S
+        self._reap_run()
 
     # -- main loop -----------------------------------------------------------------------------
 
@@ -207,18 +221,17 @@ class Daemon:
         forwarded = 0
         while True:
             if self.shutdown.requested:
+                self._abandon_preparing("the daemon is shutting down")
                 if self.active is None:
                     return
                 # forward every signal to the run: the first stops smoothly, a second quick-stops
                 while forwarded < self.shutdown.count:
                     self.active.stop.request(self.shutdown.reason or "shutdown")
                     forwarded += 1
-            timeout = self.settings.idle_check_s
-            for key, mask in self._selector.select(timeout):
-                if key.data is None:
-                    self._accept()
-                else:
-                    self._service(key.data, mask)
+            # poll a run's checks often; otherwise wake for the idle check
+            timeout = 0.02 if self.preparing is not None else self.settings.idle_check_s
+            self.server.poll(timeout)
+            self._finish_preparing()
             self._reap_run()
             now = time.monotonic()
             if self.active is None and now >= next_check:
@@ -270,109 +283,37 @@ class Daemon:
             self.rig.close()
             self.rig = None
 
-    # -- sockets -------------------------------------------------------------------------------
-
-    def _accept(self) -> None:
-        assert self._listener is not None
-        try:
-            sock, _ = self._listener.accept()
-        except BlockingIOError:
-            return
-        uid = _peer_uid(sock)
-        if uid is not None and uid not in (self._uid, 0):
-            log.warning(
-                "refused a connection from uid %d", uid, extra={"event": "refused", "uid": uid}
-            )
-            try:
-                sock.sendall(_encode({"ok": False, "error": "permission denied"}))
-            except OSError:
-                pass
-            sock.close()
-            return
-        sock.setblocking(False)
-        client = _Client(sock)
-        self._clients[sock.fileno()] = client
-        self._selector.register(sock, selectors.EVENT_READ, client)
-
-    def _service(self, client: _Client, mask: int) -> None:
-        if mask & selectors.EVENT_READ:
-            try:
-                data = client.sock.recv(65536)
-            except (BlockingIOError, InterruptedError):
-                data = None
-            except OSError:
-                data = b""
-            if data == b"":
-                self._close_client(client)
-                return
-            if data:
-                client.buffer.extend(data)
-                while b"\n" in client.buffer:
-                    line, _, rest = bytes(client.buffer).partition(b"\n")
-                    client.buffer = bytearray(rest)
-                    client.out.extend(_encode(self.handle_line(line)))
-                if len(client.buffer) > MAX_LINE:
-                    client.out.extend(
-                        _encode({"ok": False, "error": f"request longer than {MAX_LINE} bytes"})
-                    )
-                    client.closing = True
-                    client.buffer.clear()
-        if client.out:
-            try:
-                sent = client.sock.send(client.out)
-                del client.out[:sent]
-            except (BlockingIOError, InterruptedError):
-                pass
-            except OSError:
-                self._close_client(client)
-                return
-        events = selectors.EVENT_READ | (selectors.EVENT_WRITE if client.out else 0)
-        if client.closing and not client.out:
-            self._close_client(client)
-            return
-        self._selector.modify(client.sock, events, client)
-
-    def _close_client(self, client: _Client) -> None:
-        self._clients.pop(client.sock.fileno(), None)
-        try:
-            self._selector.unregister(client.sock)
-        except (KeyError, ValueError):
-            pass
-        client.sock.close()
-
     # -- requests ------------------------------------------------------------------------------
 
     def handle_line(self, line: bytes) -> dict[str, Any]:
-        """The reply to one request line (never raises)."""
+        """The reply to one request line (never raises; a ``run`` waits for its checks)."""
+        reply = self._handle(None, line)
+        if reply is not None:
+            return reply
+        assert self.preparing is not None
+        self.preparing.job.wait(3600.0)
+        return self._finish_preparing() or {"ok": False, "error": "the run was abandoned"}
+
+    def _handle(self, client: Client | None, line: bytes) -> dict[str, Any] | None:
+        """The reply to one request line, or None when a ``run`` replies after its checks."""
         try:
-            try:
-                req = json.loads(line.decode("utf-8"))
-            except (UnicodeDecodeError, ValueError) as exc:
-                raise RequestError(f"malformed request: not a JSON line ({exc})") from None
-            if not isinstance(req, dict):
-                raise RequestError("malformed request: expected a JSON object")
+            req = parse_request(line)
             cmd = req.get("cmd")
             if cmd == "status":
                 _only(req, {"cmd"})
                 return {"ok": True, **self.status()}
             if cmd == "run":
                 _only(req, {"cmd", "trajectory", "label", "payload"})
-                return {"ok": True, **self.start_run(req)}
+                self.start_run(req, client)
+                return None
             if cmd == "stop":
                 _only(req, {"cmd"})
                 return {"ok": True, **self.stop_run()}
             raise RequestError(
                 f"malformed request: unknown cmd {cmd!r} (expected status, run or stop)"
             )
-        except InputError as exc:
-            log.warning("request refused: %s", exc, extra={"event": "refused"})
-            return {"ok": False, "error": str(exc)}
-        except DrivegainError as exc:
-            log.error("request failed: %s", exc, extra={"event": "error"})
-            return {"ok": False, "error": str(exc)}
-        except Exception as exc:  # a bug must not take the service down
-            log.exception("internal error serving a request")
-            return {"ok": False, "error": f"internal error: {type(exc).__name__}: {exc}"}
+        except Exception as exc:
+            return _error_reply(exc)
 
     def status(self) -> dict[str, Any]:
         """What ``status`` replies."""
@@ -387,7 +328,12 @@ class Daemon:
                 "duration_s": round(s.duration_s, 4),
                 "out": str(self.active.out),
             }
-        state = "running" if self.active is not None else ("fault" if self.fault else "idle")
+        if self.active is not None:
+            state = "running"
+        elif self.preparing is not None:
+            state = "preparing"
+        else:
+            state = "fault" if self.fault else "idle"
         return {
             "state": state,
             "run": run,
@@ -400,13 +346,23 @@ class Daemon:
             "period_s": self.cfg.period_s,
         }
 
-    def start_run(self, req: dict[str, Any]) -> dict[str, Any]:
-        """Check and start a run (the ``run`` request)."""
+    def start_run(self, req: dict[str, Any], client: Client | None = None) -> None:
+        """Check the request's fields and start its checks on a worker (the ``run`` request).
+
+        The reply is sent when the checks are over (:meth:`_finish_preparing`).
+
+        Raises
+        ------
+        RequestError
+            A run is prepared or in progress, the daemon is shutting down, or a field is bad.
+        """
         if self.active is not None:
             raise RequestError(
                 f"a run is already in progress ({self.active.session.prepared.label}): "
                 "send stop or wait"
             )
+        if self.preparing is not None:
+            raise RequestError(f"a run is being prepared ({self.preparing.label}): wait")
         if self.shutdown.requested:
             raise RequestError("the daemon is shutting down")
         trajectory = _abs_path(req, "trajectory", required=True)
@@ -420,9 +376,28 @@ class Daemon:
         stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%S%fZ")
         name = label or ("loaded" if payload is not None else "unloaded")
         out = self.settings.output_dir / f"{stamp}-{name}.mcap"
-        prepared = prepare_run(
+        job = PrepareJob(
             self.cfg, RunRequest(trajectory=trajectory, out=out, label=label, payload=payload)
         )
+        self.preparing = _Preparing(job=job, client=client, label=name)
+
+    def _finish_preparing(self) -> dict[str, Any] | None:
+        """Once a run's checks are over: boot if needed, plan, start the run, send the reply."""
+        prep = self.preparing
+        if prep is None or not prep.job.done:
+            return None
+        self.preparing = None
+        try:
+            reply = {"ok": True, **self._start_checked(prep)}
+        except Exception as exc:
+            reply = _error_reply(exc)
+        if prep.client is not None:
+            self.server.reply(prep.client, reply)
+        return reply
+
+    def _start_checked(self, prep: _Preparing) -> dict[str, Any]:
+        prepared = prep.job.result()
+        out = prepared.request.out
         if self.rig is None:
             log.info("booting the drives again", extra={"event": "boot"})
             self._boot()
@@ -439,14 +414,11 @@ class Daemon:
             policy=self.rig.policy,
         )
         self.rig.boot_events = []
-        session.plan()
+        session.plan()  # bounded: one period of the excitation besides approach and retreat
         run = _ActiveRun(session=session, thread=threading.Thread(), stop=stop, out=out)
 
         def target() -> None:
-            try:
-                run.outcome["result"] = session.run()
-            except BaseException as exc:
-                run.outcome["error"] = exc
+            run.outcome.update(run_session(session))
 
         run.thread = threading.Thread(target=target, name="drivegain-cycle", daemon=True)
         self.active = run
@@ -458,9 +430,22 @@ class Daemon:
         )
         return {"label": prepared.label, "out": str(out), "duration_s": session.duration_s}
 
+    def _abandon_preparing(self, why: str) -> None:
+        prep = self.preparing
+        if prep is None:
+            return
+        self.preparing = None  # the worker only reads files: it ends by itself, unused
+        log.info("run checks abandoned: %s", why, extra={"event": "abandoned"})
+        if prep.client is not None:
+            self.server.reply(prep.client, {"ok": False, "error": why})
+
     def stop_run(self) -> dict[str, Any]:
         """Ask the run in progress to come to rest (the ``stop`` request)."""
         if self.active is None:
+            if self.preparing is not None:
+                label = self.preparing.label
+                self._abandon_preparing("stopped by a stop request before the run started")
+                return {"stopping": label}
             raise RequestError("no run in progress")
         self.active.stop.request("stop request")
         log.info("stop requested", extra={"event": "stop"})
@@ -475,6 +460,9 @@ class Daemon:
         self.runs += 1
         res: RunResult | None = run.outcome.get("result") or run.session.result
         err = run.outcome.get("error")
+        if err is not None:
+            # a log that could not even be started would block nothing but clutter the folder
+            discard_unrecorded(run.out)
         self.last_run = {
             "label": run.session.prepared.label,
             "state": res.state.value if res else "fault",
@@ -501,6 +489,8 @@ class Daemon:
         if self.active is not None:
             s = self.active.session
             text = f"running {s.prepared.label}: {s.state.value} t={s.t:.1f}/{s.duration_s:.1f} s"
+        elif self.preparing is not None:
+            text = f"preparing {self.preparing.label}"
         elif self.fault:
             text = f"fault: {self.fault}"
         else:
@@ -515,6 +505,19 @@ class Daemon:
             self.notifier.notify(state)
         except Exception as exc:
             log.debug("sd_notify failed: %s", exc)
+
+
+def _error_reply(exc: BaseException) -> dict[str, Any]:
+    """The ``{"ok": false}`` reply of a refused or failed request (logged here)."""
+    if isinstance(exc, InputError):
+        log.warning("request refused: %s", exc, extra={"event": "refused"})
+        return {"ok": False, "error": str(exc)}
+    if isinstance(exc, DrivegainError):
+        log.error("request failed: %s", exc, extra={"event": "error"})
+        return {"ok": False, "error": str(exc)}
+    # a bug must not take the service down
+    log.error("internal error serving a request", exc_info=exc)
+    return {"ok": False, "error": f"internal error: {type(exc).__name__}: {exc}"}
 
 
 def _only(req: dict[str, Any], allowed: set[str]) -> None:
@@ -538,44 +541,3 @@ def _abs_path(req: dict[str, Any], key: str, *, required: bool) -> Path | None:
             key=key,
         )
     return path
-
-
-def _encode(obj: dict[str, Any]) -> bytes:
-    return (json.dumps(obj, default=str) + "\n").encode()
-
-
-def _peer_uid(sock: socket.socket) -> int | None:
-    """The uid of the process at the other end (Linux SO_PEERCRED), or None if unknown."""
-    try:
-        creds = sock.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, struct.calcsize("3i"))
-    except (OSError, AttributeError):
-        return None
-    _pid, uid, _gid = struct.unpack("3i", creds)
-    return int(uid)
-
-
-def request(path: str | Path, message: dict[str, Any], timeout: float = 10.0) -> dict[str, Any]:
-    """Send one request to a daemon and return its reply (a small client for scripts and tests).
-
-    Raises
-    ------
-    OSError
-        The socket cannot be reached.
-    """
-    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
-        s.settimeout(timeout)
-        s.connect(str(path))
-        s.sendall(_encode(message))
-        return read_reply(s)
-
-
-def read_reply(s: socket.socket) -> dict[str, Any]:
-    """Read one reply line from a connected control socket."""
-    buf = bytearray()
-    while b"\n" not in buf:
-        chunk = s.recv(65536)
-        if not chunk:
-            raise ConnectionError("the daemon closed the connection")
-        buf.extend(chunk)
-    reply: dict[str, Any] = json.loads(bytes(buf).partition(b"\n")[0])
-    return reply

@@ -1,4 +1,5 @@
-"""``drivegain demo``: the whole pipeline on the simulated TX-40, no hardware.
+"""``drivegain demo``: the whole pipeline on a simulated robot (TX-40, or ``--robot ur5``), no
+hardware.
 
 1. The excitation: the shipped optimised trajectory (``config/tx40-excitation.json``), else one
    optimised now.
@@ -32,6 +33,7 @@ from drivegain.config.excitation import (
     DEFAULT_HARMONICS,
     DEFAULT_PERIODS,
 )
+from drivegain.drivers.bus import BusOverrides
 from drivegain.errors import ConfigError, IdentificationError
 
 log = logging.getLogger(__name__)
@@ -39,6 +41,11 @@ log = logging.getLogger(__name__)
 SIM_CONFIG = "acquire-sim.toml"
 SHIPPED_TRAJECTORY = "tx40-excitation.json"
 PAYLOAD = "payloads/calibrated-4590g.toml"
+#: ``--robot``: shipped robot name -> (simulated acquisition TOML, shipped trajectory).
+ROBOTS = {
+    "tx40": (SIM_CONFIG, SHIPPED_TRAJECTORY),
+    "ur5": ("acquire-sim-ur5.toml", "ur5-excitation.json"),
+}
 
 
 @dataclass(frozen=True)
@@ -60,13 +67,21 @@ class DemoResult:
         return (self.identified - self.true) / self.true
 
 
-def demo_trajectory(out: Path, robot_path: Path, console: Console) -> Path:
-    """The shipped trajectory, or one optimised into ``out`` when none is shipped."""
+def demo_trajectory(
+    out: Path,
+    robot_path: Path,
+    console: Console,
+    shipped: str = SHIPPED_TRAJECTORY,
+    nominal: Path | None = None,
+) -> Path:
+    """The shipped trajectory, or one optimised into ``out`` when none is shipped
+    (``nominal``: the dynamic parameters the optimiser assumes, for a robot without a shipped
+    model)."""
     try:
-        return resource_path(SHIPPED_TRAJECTORY)
+        return resource_path(shipped)
     except FileNotFoundError:
         pass
-    target = out / SHIPPED_TRAJECTORY
+    target = out / shipped
     if target.is_file():
         return target
     from drivegain.excite.commands import excite
@@ -84,6 +99,7 @@ def demo_trajectory(out: Path, robot_path: Path, console: Console) -> Path:
         criterion="cond",
         plot=None,
         debug=False,
+        nominal=nominal,
     )
     excite(args)
     return target
@@ -97,6 +113,8 @@ def run_demo(
     config: Path | None = None,
     console: Console | None = None,
     progress: bool | None = None,
+    bus_overrides: BusOverrides | None = None,
+    robot: str = "tx40",
 ) -> DemoResult:
     """Run the demo into ``out`` and print the gains.
 
@@ -114,13 +132,22 @@ def run_demo(
         Where to print (stdout by default).
     progress
         Progress bars (default: when stderr is a terminal).
+    bus_overrides
+        ``--interface/--channel/--bitrate``: e.g. the simulated drives on ``socketcan`` /
+        ``vcan0`` (never a real device: the configuration refuses it).
+    robot
+        ``--robot``: a shipped robot of :data:`ROBOTS` (``tx40``, ``ur5``).
     """
     console = console or Console()
-    cfg = load_acquisition_config(config or resource_path(SIM_CONFIG))
+    if robot not in ROBOTS:
+        raise ConfigError(f"unknown demo robot {robot!r} (one of {', '.join(ROBOTS)})")
+    sim_config, shipped = ROBOTS[robot]
+    cfg = load_acquisition_config(config or resource_path(sim_config), bus_overrides)
     if cfg.simulation is None:
         raise ConfigError("the demo needs a [simulation] table", file=cfg.source)
     out.mkdir(parents=True, exist_ok=True)
-    traj = trajectory or demo_trajectory(out, cfg.robot_path, console)
+    nominal = None if robot == "tx40" else cfg.simulation.truth
+    traj = trajectory or demo_trajectory(out, cfg.robot_path, console, shipped, nominal)
     payload = resource_path(PAYLOAD)
     console.print(
         f"[bold]drivegain demo[/bold]: simulated {cfg.robot.name}, {cfg.robot.n} drives on "

@@ -15,10 +15,12 @@ from typing import Any
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
+from drivegain.acquire.cantrace import can_trace
 from drivegain.acquire.config import AcquisitionConfig
-from drivegain.acquire.request import PreparedRun, RunRequest, prepare_run
+from drivegain.acquire.recorder import discard_unrecorded, unwritable_log
+from drivegain.acquire.request import PreparedRun, RunRequest, prepare_run_interruptible
 from drivegain.acquire.rig import Rig, simulation_for_run
-from drivegain.acquire.session import RunResult, Session
+from drivegain.acquire.session import RunResult, RunState, Session
 from drivegain.acquire.stop import StopRequest
 from drivegain.drivers.sim import SimConfig
 from drivegain.errors import OperatorStop
@@ -70,7 +72,8 @@ def run_foreground(
         Faults; when the run had started the log is finished with the fault as the last event.
     """
     stop = stop if stop is not None else StopRequest()
-    prepared = prepare_run(cfg, request)
+    # on a worker: a signal during the checks is honoured at once (they are abandoned)
+    prepared = prepare_run_interruptible(cfg, request, stop)
     sim = simulation
     if sim is None and cfg.simulation is not None:
         sim = simulation_for_run(cfg.simulation, request.payload, seed)
@@ -84,7 +87,13 @@ def run_foreground(
         session.plan()
         if stop.requested:
             raise OperatorStop(f"stopped by {stop.reason} before the drives were enabled")
-        return _run_on_thread(session, prepared, progress, title)
+        try:
+            with can_trace(cfg.bus, request.can_trace):
+                return _run_on_thread(session, prepared, progress, title)
+        except BaseException:
+            # a log that could not even be started would block the retry; one with cycles stays
+            discard_unrecorded(request.out)
+            raise
 
 
 def _run_on_thread(
@@ -93,10 +102,7 @@ def _run_on_thread(
     outcome: dict[str, Any] = {}
 
     def target() -> None:
-        try:
-            outcome["result"] = session.run()
-        except BaseException as exc:
-            outcome["error"] = exc
+        outcome.update(run_session(session))
 
     thread = threading.Thread(target=target, name="drivegain-cycle")
     show = sys.stderr.isatty() if progress is None else progress
@@ -135,3 +141,19 @@ def _run_on_thread(
         raise outcome["error"]
     result: RunResult = outcome["result"]
     return result
+
+
+def run_session(session: Session) -> dict[str, Any]:
+    """Run a session on the calling thread: ``{"result": RunResult}`` or ``{"error": exc}``.
+
+    An ``OSError`` before the drives were enabled (the log could not be created: a full disk)
+    becomes one line naming the file (:func:`~drivegain.acquire.recorder.unwritable_log`).
+    """
+    try:
+        return {"result": session.run()}
+    except OSError as exc:
+        if session.state is RunState.PLANNED:
+            return {"error": unwritable_log(exc, session.prepared.request.out)}
+        return {"error": exc}
+    except BaseException as exc:  # handed to the waiting thread, which raises it
+        return {"error": exc}

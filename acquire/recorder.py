@@ -23,7 +23,8 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from drivegain.errors import DrivegainError, UsageError
+from drivegain.errors import DrivegainError, InputError, UsageError
+from drivegain.formats.log import JOINT_STATES
 
 log = logging.getLogger(__name__)
 
@@ -294,3 +295,61 @@ class Recorder:
             self.written_events += 1
         else:  # pragma: no cover - only this module queues items
             raise TypeError(f"unexpected record {type(item).__name__}")
+
+
+def part_path(out: Path) -> Path:
+    """The file a run is written to until it is finished (``NAME.mcap.part``)."""
+    return out.with_name(out.name + ".part")
+
+
+def holds_cycles(part: Path) -> bool:
+    """Whether an unfinished log holds at least one recorded cycle (read up to the first one).
+
+    A file cut anywhere counts what it holds before the cut; an empty or unreadable one holds
+    nothing.
+    """
+    try:
+        if part.stat().st_size == 0:
+            return False
+        from drivegain.formats.logreader import iter_channel
+
+        for _ in iter_channel(part, JOINT_STATES):
+            return True
+    except (OSError, DrivegainError, ValueError):
+        pass  # what could be read held no cycle
+    return False
+
+
+def discard_unrecorded(out: Path) -> bool:
+    """Remove the ``.part`` of a failed run when it holds no recorded cycle; whether it did.
+
+    Such a file (a log that could not even be started, e.g. on a full disk) would only block
+    the retry (a log is never overwritten); one holding cycles is kept, whatever its state.
+    """
+    part = part_path(out)
+    if not part.exists() or holds_cycles(part):
+        return False
+    try:
+        part.unlink()
+    except OSError as exc:
+        log.error("cannot remove %s: %s", part, exc.strerror)
+        return False
+    log.info("removed %s: nothing was recorded", part)
+    return True
+
+
+def unwritable_log(exc: OSError, out: Path) -> InputError:
+    """The one-line error of a log that could not be written before anything was recorded.
+
+    Parameters
+    ----------
+    exc
+        What the file system said (e.g. ENOSPC).
+    out
+        The run's log (``NAME.mcap``); the message names the file being written.
+    """
+    where = exc.filename or part_path(out)
+    return InputError(
+        f"cannot write the log ({exc.strerror or exc}): nothing was recorded, no drive moved",
+        file=where,
+    )

@@ -19,7 +19,7 @@ from drivegain.acquire.config import AcquisitionConfig
 from drivegain.drivers.bus import open_network
 from drivegain.drivers.clock import Clock
 from drivegain.drivers.ipcbus import INTERFACE as IPC_INTERFACE
-from drivegain.drivers.master import DriveEvent, Master, Timeouts
+from drivegain.drivers.master import DriveEvent, Master, MasterHeartbeat, Timeouts
 from drivegain.drivers.realtime import RealtimePolicy
 from drivegain.drivers.sim import SimConfig, SimulatedCell
 from drivegain.drivers.simprocess import SimulatedCellProcess
@@ -72,7 +72,8 @@ class Rig:
         cycle thread's scheduling from it (:attr:`policy`), and simulated drives in a child
         process enter the same policy there.
     timeouts
-        The master's time limits (default: the library's, with ``cfg.tpdo_timeout_s``).
+        The master's time limits (default: the library's, with ``cfg.tpdo_timeout_s`` and
+        ``cfg.heartbeat_timeout_s``).
 
     Use as a context manager, or call :meth:`open` and :meth:`close` (which never raises).
     """
@@ -87,7 +88,11 @@ class Rig:
         self.cfg = cfg
         self.simulation = simulation if simulation is not None else cfg.simulation
         self.policy = policy if policy is not None else realtime_policy(cfg)
-        self.timeouts = timeouts if timeouts is not None else Timeouts(tpdo_s=cfg.tpdo_timeout_s)
+        self.timeouts = (
+            timeouts
+            if timeouts is not None
+            else Timeouts(tpdo_s=cfg.tpdo_timeout_s, heartbeat_s=cfg.heartbeat_timeout_s)
+        )
         self.cell: SimulatedCell | SimulatedCellProcess | None = None
         self.network: canopen.Network | None = None
         self.master: Master | None = None
@@ -118,12 +123,17 @@ class Rig:
                     self.cell = SimulatedCell(cfg.robot, cfg.bus, sim, cfg.period_s, eds=cfg.eds)
                 self.cell.start()
             self.network = open_network(cfg.bus)
+            # in lockstep with the drives in this process, the master counts their simulated
+            # time (every supervision time-out); otherwise the wall clock
+            clock = self.cell.clock.lockstep if isinstance(self.cell, SimulatedCell) else None
             self.master = Master(
                 cfg.robot,
                 self.network,
                 period_s=cfg.period_s,
                 eds=cfg.eds,
                 timeouts=self.timeouts,
+                heartbeat=MasterHeartbeat(cfg.master_node_id, cfg.master_heartbeat_s),
+                clock=clock,
             )
             self.master.boot()
             self.boot_events = list(self.master.drain_events())

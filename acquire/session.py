@@ -254,6 +254,11 @@ class Session:
                 "bitrate": str(cfg.bus.bitrate),
                 "bus_load": f"{self.bus_load.load:.3f}",
                 "trajectory": prep.request.trajectory.name,
+                **(
+                    {"can_trace": prep.request.can_trace.name}
+                    if prep.request.can_trace is not None
+                    else {}
+                ),
                 "host": os.uname().nodename,
             },
         )

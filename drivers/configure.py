@@ -4,8 +4,9 @@ and its PDO maps (``node.rpdo`` / ``node.tpdo``).
 Per drive: device type (CiA 402), cyclic synchronous position support (0x6502), rated current
 (0x6075), encoder resolution (0x608F, checked against the robot file), PDO mapping (RPDO1 target
 + controlword, TPDO1/TPDO2 synchronous, the other predefined PDOs disabled), SYNC counter
-overflow (0x1019), heartbeat producer (0x1017), interpolation period (0x60C2), mode of operation
-0x6060 = 8 (checked in 0x6061).
+overflow (0x1019), heartbeat producer (0x1017), consumer of the master's heartbeat (0x1016 sub 1:
+a drive that misses it goes to its fault reaction), interpolation period (0x60C2), mode of
+operation 0x6060 = 8 (checked in 0x6061).
 
 Every PDO is reconfigured as CiA 301 requires, which is what canopen's ``PdoMap.save()`` sends
 once its optional parameters are left unset: COB-ID with the "not valid" bit, transmission type,
@@ -55,6 +56,9 @@ class DriveConfigurator:
         The SYNC carries a counter: write its overflow value (0x1019).
     heartbeat_ms
         Heartbeat producer period to write (0x1017), ms.
+    consumer
+        The drive's consumer of the master's heartbeat to write (0x1016 sub 1: master node id
+        << 16 | time-out in ms).
     interpolation
         Interpolation period (value, index) to write (0x60C2 sub 1, 2).
     supervisor
@@ -75,6 +79,7 @@ class DriveConfigurator:
         *,
         sync_counter: bool,
         heartbeat_ms: int,
+        consumer: int,
         interpolation: tuple[int, int],
         supervisor: Supervisor,
     ):
@@ -84,6 +89,7 @@ class DriveConfigurator:
         self.layout = layout
         self.sync_counter = sync_counter
         self.heartbeat_ms = heartbeat_ms
+        self.consumer = consumer
         self.interpolation = interpolation
         self.supervisor = supervisor
         self._check_eds()
@@ -144,6 +150,7 @@ class DriveConfigurator:
         if self.sync_counter:
             sdo_write(d, ob.SYNC_OVERFLOW, 0, ob.SYNC_COUNTER_OVERFLOW)
         sdo_write(d, ob.PRODUCER_HEARTBEAT, 0, self.heartbeat_ms)
+        sdo_write(d, ob.CONSUMER_HEARTBEAT, 1, self.consumer)
         value, index = self.interpolation
         sdo_write(d, ob.INTERPOLATION_PERIOD, 1, value)
         sdo_write(d, ob.INTERPOLATION_PERIOD, 2, index)
@@ -202,6 +209,7 @@ class DriveConfigurator:
     def _map_pdos(self, d: DriveLink) -> None:
         """RPDO2..4 and TPDO3..4 off, then RPDO1, TPDO1, TPDO2 mapped and synchronous."""
         rpdo, tpdo = d.node.rpdo.map, d.node.tpdo.map
+        assert rpdo is not None and tpdo is not None  # a RemoteNode always has both
         for unused in (*(rpdo.get(k) for k in (2, 3, 4)), *(tpdo.get(k) for k in (3, 4))):
             if unused is not None:
                 self._disable(d, unused)

@@ -62,7 +62,8 @@ class CycleSample:
         ``sync_counter`` (the counter echoed in the TPDOs, or the counter of the SYNC sent when
         the drive does not echo it), ``target`` (counts sent in the RPDO).
     latency_s
-        SYNC sent to last TPDO received, s.
+        SYNC sent to last TPDO received, s, on the master's clock (in lockstep: the simulated
+        delay of the last TPDO after its SYNC).
     sync_monotonic_s
         Monotonic time the SYNC was sent (``time.monotonic()``), s: for intervals between SYNCs.
     """
@@ -93,7 +94,7 @@ class CycleExchanger:
     sync_counter
         SYNC carries the counter byte (the drives know its overflow, 0x1019).
     timeouts
-        ``tpdo_s``: SYNC to the last TPDO of the cycle.
+        ``tpdo_s``: SYNC to the last TPDO of the cycle, on the supervisor's clock.
     supervisor
         Faults and events; its :meth:`~Supervisor.check` explains a silent drive.
 
@@ -201,8 +202,13 @@ class CycleExchanger:
             send(self.network, 0x200 + d.node_id, self._rpdo.pack(int(counts[d.joint]), cw))
         sync_ns = time.time_ns()
         t_sync = time.monotonic()
+        sync_clock = self.supervisor.clock.now()
         send(self.network, 0x80, bytes([counter]) if self.sync_counter else b"")
-        complete = self._complete.wait(self.timeouts.tpdo_s)
+        # on lockstep's simulated clock, a TPDO that cannot come any more is missing after
+        # tpdo_s of simulated time, whatever the machine's load
+        complete = self.supervisor.clock.wait(
+            self._complete, self.timeouts.tpdo_s, f"the TPDOs of cycle {cycle}"
+        )
         with self._lock:
             frames = self._frames
             self._pending = None
@@ -220,7 +226,8 @@ class CycleExchanger:
                             state=d.state,
                             code=int(ob.EmcyCode.PDO_TIMEOUT),
                         )
-        return self._decode(cycle, sync_ns, t_sync, counter, frames, counts, last - t_sync)
+        latency = last - self.supervisor.clock.sync_time(sync_clock)
+        return self._decode(cycle, sync_ns, t_sync, counter, frames, counts, latency)
 
     def _decode(
         self,
@@ -299,8 +306,9 @@ class CycleExchanger:
                 )
 
     # --- reception (notifier thread) -----------------------------------------------------------
-    def on_tpdo(self, d: DriveLink, k: int, data: bytes) -> None:
-        """TPDO ``k + 1`` of drive ``d``: file it in the cycle in flight, or drop it."""
+    def on_tpdo(self, d: DriveLink, k: int, data: bytes, sent: float) -> None:
+        """TPDO ``k + 1`` of drive ``d``, sent at ``sent`` (the supervisor's clock): file it in
+        the cycle in flight, or drop it."""
         layout = self._tpdo_structs[k]
         if len(data) < layout.size:
             self.supervisor.add_fault(
@@ -333,5 +341,5 @@ class CycleExchanger:
                 self._missing -= 1
             slot[k] = values
             if self._missing == 0:
-                self._last_arrival = time.monotonic()
+                self._last_arrival = sent
                 self._complete.set()

@@ -90,9 +90,10 @@ class DriveLink:
     nmt
         Last NMT state seen in a heartbeat (None before the first).
     last_heartbeat
-        ``time.monotonic()`` of the last heartbeat, s (None until the consumer starts).
+        When the last heartbeat was sent, on the master's clock (:mod:`.simtime`), s (None
+        until the consumer starts).
     silence_reported
-        ``time.monotonic()`` of the last heartbeat time-out reported, s.
+        When the last heartbeat time-out was reported, on the master's clock, s.
     state
         Last CiA 402 state seen (statusword by SDO or TPDO).
     """
@@ -112,6 +113,7 @@ class DriveLink:
 #: describe them, since typed SDO access takes the data type from it.
 REQUIRED_OBJECTS = (
     (ob.DEVICE_TYPE, 0),
+    (ob.CONSUMER_HEARTBEAT, 1),
     (ob.PRODUCER_HEARTBEAT, 0),
     (ob.RPDO_COMM, 1),
     (ob.RPDO_MAP, 0),

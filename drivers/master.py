@@ -9,7 +9,11 @@ The master is a facade over one part per job, sharing the per-drive records of :
 - :mod:`.configure`: SDO configuration and PDO mapping of each drive (canopen's PDO maps);
 - :mod:`.statewalk`: the CiA 402 state walk by SDO;
 - :mod:`.exchange`: RPDOs, SYNC, TPDO collection tagged by SYNC counter, :class:`CycleSample`;
-- :mod:`.supervisor`: heartbeat consumer, EMCY, CAN error frames, faults and events.
+- :mod:`.supervisor`: heartbeat consumer, EMCY, CAN error frames, faults and events;
+- :mod:`.heartbeat`: the master's own heartbeat, which the drives' consumers (0x1016) watch.
+
+Time-outs count the master's clock (:mod:`.simtime`): the wall clock, or in lockstep the
+simulated clock the master shares with the simulated drives.
 
 Here: NMT, the public sequence (boot, enable, cycle, quick stop, disable, close) and frame
 dispatch. Reception does not use canopen's per-id callbacks (one failing callback silently skips
@@ -37,13 +41,22 @@ from drivegain.drivers.bus import BusLoad
 from drivegain.drivers.cia402 import POWERED, Command, State
 from drivegain.drivers.configure import DriveConfigurator
 from drivegain.drivers.exchange import CycleExchanger, CycleSample
+from drivegain.drivers.heartbeat import HeartbeatProducer, MasterHeartbeat
 from drivegain.drivers.link import DriveLink, Timeouts, sdo_read, sdo_write, send
+from drivegain.drivers.simtime import HANG_S, LockstepClock, TimeBase, WallTime
 from drivegain.drivers.statewalk import StateWalker
 from drivegain.drivers.supervisor import ERROR_FRAMES_PER_S, DriveEvent, Supervisor
 from drivegain.errors import BusError, ConfigError, DriveError
 from drivegain.formats.log import EventLevel
 
-__all__ = ["ERROR_FRAMES_PER_S", "CycleSample", "DriveEvent", "Master", "Timeouts"]
+__all__ = [
+    "ERROR_FRAMES_PER_S",
+    "CycleSample",
+    "DriveEvent",
+    "Master",
+    "MasterHeartbeat",
+    "Timeouts",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -57,9 +70,10 @@ class _Dispatcher(can.Listener):
     """Hands every frame of the bus to the part of the master that handles it (runs in the
     notifier thread)."""
 
-    def __init__(self, exchanger: CycleExchanger, supervisor: Supervisor):
+    def __init__(self, exchanger: CycleExchanger, supervisor: Supervisor, clock: TimeBase):
         self.exchanger = exchanger
         self.supervisor = supervisor
+        self.clock = clock
 
     def on_message_received(self, msg: can.Message) -> None:
         try:
@@ -77,7 +91,7 @@ class _Dispatcher(can.Listener):
         cob = msg.arbitration_id
         hit = self.exchanger.tpdo_index.get(cob)
         if hit is not None:
-            self.exchanger.on_tpdo(hit[0], hit[1], bytes(msg.data))
+            self.exchanger.on_tpdo(hit[0], hit[1], bytes(msg.data), self.clock.stamp(msg))
             return
         node_id = cob & 0x7F
         d = self.supervisor.by_node.get(node_id)
@@ -85,7 +99,7 @@ class _Dispatcher(can.Listener):
             return
         function = cob & 0x780
         if function == 0x700 and msg.dlc >= 1:
-            self.supervisor.on_heartbeat(d, msg.data[0] & 0x7F)
+            self.supervisor.on_heartbeat(d, msg.data[0] & 0x7F, self.clock.stamp(msg))
         elif function == 0x080 and node_id != 0:
             self.supervisor.on_emcy(d, bytes(msg.data))
 
@@ -110,14 +124,22 @@ class Master:
         standard CiA 301/402 objects, plus the SYNC echo 0x2010 if the EDS has it.
     timeouts
         Time limits.
+    heartbeat
+        The master's own heartbeat (node id, period), which every drive's consumer (0x1016)
+        is set to watch; default :class:`~.heartbeat.MasterHeartbeat`.
+    clock
+        The clock the time limits count: the wall clock (default), or the
+        :class:`~.simtime.LockstepClock` of simulated drives in lockstep, which the master then
+        joins (SDO answers of simulated drives take no simulated time: their wait is bounded by
+        the clock's hang limit only).
 
     Raises
     ------
     BusError
         The network is not connected.
     ConfigError
-        The period cannot be written to the drives, or the EDS is unreadable or lacks an
-        object the master uses.
+        The period cannot be written to the drives, the EDS is unreadable or lacks an object
+        the master uses, or a drive has the master's node id.
     """
 
     def __init__(
@@ -128,10 +150,19 @@ class Master:
         period_s: float,
         eds: Path | None = None,
         timeouts: Timeouts | None = None,
+        heartbeat: MasterHeartbeat | None = None,
+        clock: TimeBase | None = None,
     ):
         if network.notifier is None or network.bus is None:
             raise BusError("the CANopen network is not connected")
         interpolation = ob.interpolation_period(period_s)
+        self.heartbeat = heartbeat or MasterHeartbeat()
+        if self.heartbeat.node_id in robot.node_ids:
+            raise ConfigError(
+                f"the master's node id {self.heartbeat.node_id} is a drive's node id",
+                file=robot.source,
+            )
+        self.clock: TimeBase = clock or WallTime()
         self.robot = robot
         self.network = network
         self.period_s = period_s
@@ -146,7 +177,9 @@ class Master:
                 raise ConfigError(f"cannot read the EDS ({exc})", file=self.eds) from None
             od_probe = od_probe or od
             node = canopen.RemoteNode(joint.node_id, od)
-            node.sdo.RESPONSE_TIMEOUT = self.timeouts.sdo_s
+            node.sdo.RESPONSE_TIMEOUT = (
+                max(self.timeouts.sdo_s, HANG_S) if self.clock.simulated else self.timeouts.sdo_s
+            )
             self._drives.append(
                 DriveLink(
                     joint=j,
@@ -163,7 +196,7 @@ class Master:
         echo = od_probe.get(ob.SYNC_ECHO)
         tagged = sync_counter and echo is not None and getattr(echo, "pdo_mappable", False)
         self.layout = ob.TAGGED_LAYOUT if tagged else ob.PLAIN_LAYOUT
-        self._supervisor = Supervisor(self._drives, network, self.timeouts)
+        self._supervisor = Supervisor(self._drives, network, self.timeouts, self.clock)
         self._configurator = DriveConfigurator(
             robot,
             od_probe,
@@ -171,6 +204,7 @@ class Master:
             self.layout,
             sync_counter=sync_counter,
             heartbeat_ms=round(self.timeouts.heartbeat_producer_s * 1000),
+            consumer=self.heartbeat.consumer_entry,
             interpolation=interpolation,
             supervisor=self._supervisor,
         )
@@ -191,8 +225,11 @@ class Master:
         # master leaves nothing behind.
         for d in self._drives:
             network.add_node(d.node)
-        self._listener = _Dispatcher(self._exchanger, self._supervisor)
+        self._listener = _Dispatcher(self._exchanger, self._supervisor, self.clock)
         network.notifier.add_listener(self._listener)
+        self._producer = HeartbeatProducer(network, self.heartbeat, self.clock)
+        if isinstance(self.clock, LockstepClock):
+            self.clock.attach(network, "master")  # after the dispatcher: it counts handled frames
 
     # --- public API ----------------------------------------------------------------------------
     @property
@@ -222,9 +259,10 @@ class Master:
     def boot(self) -> None:
         """NMT reset communication, boot-up, SDO configuration, NMT start.
 
-        Configuration per drive: see :mod:`.configure` (profile and CSP check, rated current,
-        encoder resolution, PDO mapping, SYNC counter overflow, heartbeat producer,
-        interpolation period, mode of operation CSP).
+        The master's heartbeat starts first; configuration per drive: see :mod:`.configure`
+        (profile and CSP check, rated current, encoder resolution, PDO mapping, SYNC counter
+        overflow, heartbeat producer, consumer of the master's heartbeat, interpolation period,
+        mode of operation CSP).
 
         Raises
         ------
@@ -241,6 +279,7 @@ class Master:
         for d in self._drives:
             sv.bootup[d.node_id].clear()
             sv.operational[d.node_id].clear()
+        self._producer.start()
         for d in self._drives:
             send(self.network, 0x000, bytes([_NMT_RESET_COMMUNICATION, d.node_id]))
         sv.await_nmt(sv.bootup, "no boot-up message after NMT reset communication")
@@ -348,9 +387,10 @@ class Master:
                     sdo_write(d, ob.CONTROLWORD, 0, ex.controlword)
                 except Exception as exc:
                     sv.event(EventLevel.ERROR, d.node_id, None, f"quick stop by SDO failed: {exc}")
-            deadline = time.monotonic() + self.timeouts.quick_stop_s
+            clock = self.clock
+            deadline = clock.now() + self.timeouts.quick_stop_s
             next_t = time.monotonic()
-            while time.monotonic() < deadline:
+            while clock.now() < deadline:
                 try:
                     sample = ex.exchange(ex.targets)
                 except DriveError as exc:
@@ -358,8 +398,9 @@ class Master:
                     break
                 if not any(s in POWERED for s in ex.states(sample)):
                     break
-                next_t += self.period_s
-                time.sleep(max(0.0, next_t - time.monotonic()))
+                if not clock.simulated:  # in lockstep each SYNC is one period
+                    next_t += self.period_s
+                    time.sleep(max(0.0, next_t - time.monotonic()))
             sv.event(EventLevel.WARNING, None, None, "quick stop")
         except Exception as exc:
             sv.event(EventLevel.ERROR, None, None, f"quick stop failed: {exc}")
@@ -388,8 +429,9 @@ class Master:
         sv.event(EventLevel.INFO, None, None, "drives disabled")
 
     def close(self) -> None:
-        """Disable the drives if needed, stop their PDOs (NMT pre-operational) and detach from
-        the network (which the caller disconnects); never raises."""
+        """Disable the drives if needed, switch their consumer of the master's heartbeat off
+        (an orderly end is no fault), stop their PDOs (NMT pre-operational), stop the master's
+        heartbeat and detach from the network (which the caller disconnects); never raises."""
         if self._closed:
             return
         sv = self._supervisor
@@ -399,6 +441,13 @@ class Master:
             sv.monitoring = False
             if self._booted and self.network.bus is not None:
                 for d in self._drives:
+                    if not sv.alive(d):
+                        continue
+                    try:
+                        sdo_write(d, ob.CONSUMER_HEARTBEAT, 1, 0)
+                    except Exception as exc:
+                        sv.event(EventLevel.ERROR, d.node_id, None, f"consumer off failed: {exc}")
+                for d in self._drives:
                     try:
                         send(self.network, 0x000, bytes([_NMT_PRE_OPERATIONAL, d.node_id]))
                     except Exception as exc:
@@ -406,6 +455,9 @@ class Master:
                             EventLevel.ERROR, d.node_id, None, f"NMT pre-operational failed: {exc}"
                         )
         finally:
+            self._producer.stop()
+            if isinstance(self.clock, LockstepClock):
+                self.clock.detach("master")
             self._closed = True
             self._booted = False
             notifier = self.network.notifier

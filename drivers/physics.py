@@ -306,6 +306,11 @@ class RobotPhysics:
         """Some motor is driven (otherwise integration is trivial)."""
         return self._any_powered
 
+    @property
+    def any_quick_stop(self) -> bool:
+        """Some motor is on its quick stop ramp."""
+        return self._any_qs
+
     def quick_stop_done(self) -> np.ndarray:
         """Motors in QUICK_STOP whose ramp has reached rest."""
         return self._qs & (self._qs_v == 0.0)

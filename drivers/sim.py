@@ -6,7 +6,9 @@ virtual bus delivers frames between buses of the same channel, never to their se
 master side is exactly the code that runs on hardware. Time:
 
 - ``lockstep``: every SYNC advances the physics by exactly one period (deterministic, as fast as
-  the machine allows);
+  the machine allows); heartbeats, the heartbeat consumers and late TPDOs run on the simulated
+  clock shared with the master (:mod:`.simtime`, on the in-process ``virtual`` bus; drives in a
+  process of their own cannot share it and keep the wall clock);
 - ``realtime``: the physics follows the wall clock since :meth:`start` (an integrator thread
   between SYNCs); a SYNC is handled at the instant the bus stamped it with.
 
@@ -23,8 +25,6 @@ that the drives' answer to it waits for no physics.
 from __future__ import annotations
 
 import functools
-import heapq
-import itertools
 import logging
 import math
 import threading
@@ -47,8 +47,10 @@ from drivegain.drivers.bus import BusConfig, open_network
 from drivegain.drivers.clock import Clock
 from drivegain.drivers.faults import FaultKind, FaultSpec
 from drivegain.drivers.physics import Dynamics, RobotPhysics, design_gains, truth_parameters
+from drivegain.drivers.simclock import CellClock, Integrator
 from drivegain.drivers.simconfig import SimConfig
 from drivegain.drivers.simdrive import NmtState, SimDrive
+from drivegain.drivers.simtime import LockstepClock
 from drivegain.errors import ConfigError, DriveError
 
 logger = logging.getLogger(__name__)
@@ -71,8 +73,6 @@ SIM_REQUIRED_OBJECTS = frozenset(
         ob.TARGET_POSITION,
     }
 )
-#: Realtime clock: the integrator thread wakes up about this often (s).
-INTEGRATOR_WAKE_S = 0.001
 #: Largest velocity-loop crossover times internal step (rad) that stays well damped.
 MAX_LOOP_PHASE = 0.4
 #: socketcan error class bit for bus-off, as python-can reports it in ``arbitration_id``.
@@ -109,86 +109,16 @@ class SimHistory:
 
 @dataclass(frozen=True)
 class FaultRecord:
-    """When an injected fault took effect (simulated time and ``time.monotonic()``)."""
+    """When an injected fault took effect: simulated seconds since the first SYNC, and the
+    cell's clock (lockstep's simulated clock, else ``time.monotonic()``), s."""
 
     spec: FaultSpec
     sim_time_s: float
-    monotonic_s: float
+    clock_s: float
 
 
-class _Timer:
-    """One thread running scheduled actions (heartbeats, late TPDOs) at monotonic times."""
-
-    def __init__(self, guard: Callable[..., None]):
-        self._guard = guard
-        self._heap: list[tuple[float, int, Callable[[], None]]] = []
-        self._cond = threading.Condition()
-        self._seq = itertools.count()
-        self._stopped = False
-        self._thread = threading.Thread(target=self._run, name="drivegain-sim-timer", daemon=True)
-
-    def start(self) -> None:
-        self._thread.start()
-
-    def call_at(self, due: float, fn: Callable[[], None]) -> None:
-        with self._cond:
-            heapq.heappush(self._heap, (due, next(self._seq), fn))
-            self._cond.notify()
-
-    def stop(self) -> None:
-        with self._cond:
-            self._stopped = True
-            self._cond.notify()
-        if self._thread.is_alive():
-            self._thread.join(2.0)
-
-    def _run(self) -> None:
-        while True:
-            with self._cond:
-                while not self._stopped:
-                    now = time.monotonic()
-                    if self._heap and self._heap[0][0] <= now:
-                        break
-                    self._cond.wait(self._heap[0][0] - now if self._heap else None)
-                if self._stopped:
-                    return
-                _, _, fn = heapq.heappop(self._heap)
-            self._guard(fn)
-
-
-class _Integrator:
-    """Realtime clock: integrates the physics step by step as wall time passes, like a drive's
-    own control loop, when no SYNC has done so ahead (see :meth:`SimulatedCell._sync`). Sleeping
-    between steps hands the GIL to the bus threads at once."""
-
-    def __init__(self, cell: SimulatedCell):
-        self._cell = cell
-        self._stopped = threading.Event()
-        self._thread = threading.Thread(
-            target=self._run, name="drivegain-sim-integrator", daemon=True
-        )
-
-    def start(self) -> None:
-        self._thread.start()
-
-    def stop(self) -> None:
-        self._stopped.set()
-        if self._thread.is_alive():
-            self._thread.join(2.0)
-
-    def _run(self) -> None:
-        cell = self._cell
-        dt = cell.dt
-        # Wake-ups cost CPU: integrate about a millisecond at a time.
-        batch = max(1, round(INTEGRATOR_WAKE_S / dt))
-        while not self._stopped.is_set():
-            cell.guard(cell.catch_up)
-            # Nothing powered: integration is free, wake up rarely.
-            idle = not cell.physics.any_powered
-            due = cell._t0 + (cell.physics.step_index + batch) * dt
-            pause = 0.005 if idle else due - time.monotonic()
-            if pause > 0:
-                self._stopped.wait(pause)
+#: Buses on which the drives in this process share the master's lockstep clock.
+LOCKSTEP_INTERFACES = ("virtual", "socketcan")
 
 
 class SimulatedCell:
@@ -263,6 +193,11 @@ class SimulatedCell:
             QUICK_STOP_FACTOR * robot.acceleration_limits * ratios
         )
         self._cpr = np.array([j.encoder_counts for j in robot.joints]) / (2.0 * math.pi)
+        # lockstep shares its simulated clock with the master: only within one process, on a
+        # bus that hands every frame of one side to the other (python-can's virtual bus, or a
+        # kernel socketcan device such as vcan0: its stamps are wall time, read as "now")
+        shared = sim.clock == Clock.LOCKSTEP and bus_cfg.interface in LOCKSTEP_INTERFACES
+        self.clock = CellClock(self.guard, LockstepClock() if shared else None)
         self.drives: dict[int, SimDrive] = {}
         for j, joint in enumerate(robot.joints):
             od = import_od(str(self.eds), joint.node_id)
@@ -293,7 +228,8 @@ class SimulatedCell:
                 drive.never_boots = True
             self.drives[joint.node_id] = drive
         self._network: canopen.Network | None = None
-        self._timer: _Timer | None = None
+        self._watched: set[int] = set()  # heartbeat producers some consumer listens to
+        self._ramp_watch = False
         self._t0 = 0.0
         self._sync_index = 0
         self._t_first: float | None = None
@@ -306,7 +242,7 @@ class SimulatedCell:
         self._lock = threading.Lock()  # history and fault log, read from other threads
         # Physics and drive state: bus callbacks, timer actions and the realtime integrator.
         self._physics_lock = threading.RLock()
-        self._integrator: _Integrator | None = None
+        self._integrator: Integrator | None = None
         if sim.clock == Clock.REALTIME:
             self.physics.keep_recent_steps()
         self._publish_samples()
@@ -321,17 +257,18 @@ class SimulatedCell:
             for drive in self.drives.values():
                 self._network.add_node(drive.node)
             self._network.subscribe(0x80, self._on_sync)
-            self._timer = _Timer(self.guard)
-            self._timer.start()
+            if self.clock.lockstep is not None:  # after canopen's listener: counts handled frames
+                self.clock.lockstep.attach(self._network, "drives")
+            self.clock.start()
             self._t0 = time.monotonic()
             if self.sim.clock == Clock.REALTIME:
-                self._integrator = _Integrator(self)
+                self._integrator = Integrator(self)
                 self._integrator.start()
             for drive in self.drives.values():
                 drive.boot()
             for spec in self.sim.faults:
                 if spec.kind == FaultKind.NEVER_BOOTS:
-                    self._fault_log.append(FaultRecord(spec, 0.0, time.monotonic()))
+                    self._fault_log.append(FaultRecord(spec, 0.0, self.clock.now()))
         except BaseException:
             self.stop()
             raise
@@ -341,9 +278,9 @@ class SimulatedCell:
         if self._integrator is not None:
             self._integrator.stop()
             self._integrator = None
-        if self._timer is not None:
-            self._timer.stop()
-            self._timer = None
+        if self.clock.lockstep is not None:
+            self.clock.lockstep.detach("drives")
+        self.clock.stop()
         if self._network is not None:
             try:
                 self._network.disconnect()
@@ -399,6 +336,10 @@ class SimulatedCell:
             tau_mean=np.array(cols[11]),
         )
 
+    def locked(self) -> threading.RLock:
+        """The lock of the physics and the drives' state, to read them from another thread."""
+        return self._physics_lock
+
     # --- services used by the drives --------------------------------------------------------------
     def guard(self, fn: Callable[..., None], *args: Any) -> None:
         """Run a callback; record instead of propagating its exception (python-can's notifier
@@ -415,13 +356,13 @@ class SimulatedCell:
         """(Re)start the heartbeat producer of ``drive`` (0 stops it)."""
         drive.heartbeat_generation += 1
         drive.heartbeat_period_s = period_s
-        if period_s > 0.0 and self._timer is not None:
+        if period_s > 0.0 and self.clock.running:
             generation = drive.heartbeat_generation
-            due = time.monotonic() + period_s
-            self._timer.call_at(due, lambda: self._heartbeat(drive, generation, due))
+            due = self.clock.now() + period_s
+            self.clock.call_at(due, lambda: self._heartbeat(drive, generation, due))
 
     def _heartbeat(self, drive: SimDrive, generation: int, due: float) -> None:
-        if generation != drive.heartbeat_generation or self._timer is None:
+        if generation != drive.heartbeat_generation:
             return
         network = self._network
         if network is None:
@@ -430,10 +371,58 @@ class SimulatedCell:
             network.send_message(0x700 + drive.node_id, bytes([int(drive.nmt)]))
         period = drive.heartbeat_period_s
         nxt = due + period
-        now = time.monotonic()
+        now = self.clock.now()
         if nxt < now:
             nxt = now + period
-        self._timer.call_at(nxt, lambda: self._heartbeat(drive, generation, nxt))
+        self.clock.call_at(nxt, lambda: self._heartbeat(drive, generation, nxt))
+
+    def watch_producer(self, node_id: int) -> None:
+        """Hand the heartbeats of ``node_id`` to the drives' consumers (0x1016)."""
+        if node_id and node_id not in self._watched and self._network is not None:
+            self._watched.add(node_id)
+            self._network.subscribe(0x700 + node_id, self._on_producer)
+
+    def _on_producer(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        sent = self.clock.stamp(timestamp)
+        for drive in self.drives.values():
+            if drive.consumer.producer == can_id - 0x700:
+                self.guard(drive.on_producer_heartbeat, sent)
+
+    def watch_ramps(self) -> None:
+        """A fault reaction ramps a motor to rest: without SYNC (the master is gone) the cell
+        integrates it and ends it itself, one period at a time."""
+        if not self._ramp_watch and self.clock.running:
+            self._ramp_watch = True
+            self.clock.call_at(self.clock.now() + self.period_s, self._ramp_tick)
+
+    def _ramp_tick(self) -> None:
+        self.advance_to_now()
+        self._end_ramps()
+        if self.physics.any_quick_stop:
+            self.clock.call_at(self.clock.now() + self.period_s, self._ramp_tick)
+        else:
+            self._ramp_watch = False
+            logger.warning(
+                "simulated drives: quick stop ended, largest joint speed %.3g rad/s",
+                float(np.abs(self.physics.qd).max()),
+            )
+
+    def _end_ramps(self) -> None:
+        done = self.physics.quick_stop_done()
+        for drive in self.drives.values():
+            if done[drive.joint]:
+                drive.apply_quick_stop_end()
+
+    def advance_to_now(self) -> None:
+        """Integrate the physics up to the cell's clock (caller holds the physics lock); in
+        lockstep without a shared clock (drives in their own process), one period per call."""
+        if self.sim.clock == Clock.REALTIME:
+            self.catch_up()
+        elif self.clock.lockstep is None:
+            self.physics.advance(self.substeps)
+        else:
+            target = math.floor(self.clock.now() / self.dt + 1e-6)
+            self.physics.advance(target - self.physics.step_index)
 
     # --- SYNC -------------------------------------------------------------------------------------
     def _on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
@@ -446,7 +435,10 @@ class SimulatedCell:
         counter = data[0] if data else 0
         ph = self.physics
         latched: float | None = None  # simulated time of the SYNC instant, s
-        if self.sim.clock == Clock.LOCKSTEP:
+        if self.clock.lockstep is not None:
+            t = self.clock.lockstep.sync_instant(self.period_s, self.dt)
+            ph.advance(round(t / self.dt) - ph.step_index)
+        elif self.sim.clock == Clock.LOCKSTEP:
             ph.advance(self.substeps)
         elif timestamp is None:
             self.catch_up()
@@ -480,11 +472,7 @@ class SimulatedCell:
                 targets[drive.joint] = target / self._cpr[drive.joint]
                 mask[drive.joint] = True
         ph.latch_targets(targets, mask, self.period_s)
-        done = ph.quick_stop_done()
-        if done.any():
-            for drive in self.drives.values():
-                if done[drive.joint]:
-                    drive.apply_quick_stop_end()
+        self._end_ramps()
         out = ph.evaluate()
         fe_counts = np.rint(out.following_error * self._cpr).astype(int)
         for drive in self.drives.values():
@@ -519,9 +507,9 @@ class SimulatedCell:
                 if number in drive.tpdo_dropped:
                     continue
                 delay = drive.tpdo_delay.get(number, 0.0)
-                if delay > 0.0 and self._timer is not None:
-                    self._timer.call_at(
-                        time.monotonic() + delay,
+                if delay > 0.0 and self.clock.running:
+                    self.clock.call_at(
+                        self.clock.now() + delay,
                         functools.partial(self._send_late, cob_id, payload),
                     )
                 else:
@@ -595,4 +583,4 @@ class SimulatedCell:
                     assert network.bus is not None
                     network.bus.send(frame)
             with self._lock:
-                self._fault_log.append(FaultRecord(spec, sim_t, time.monotonic()))
+                self._fault_log.append(FaultRecord(spec, sim_t, self.clock.now()))

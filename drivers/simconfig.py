@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -126,3 +127,34 @@ def sim_config_from_table(table: Table, base_dir: Path) -> SimConfig:
         One line naming the file and key at fault.
     """
     return load_table(SimConfig, table, base_dir=base_dir)
+
+
+def check_fault_nodes(sim: SimConfig, node_ids: Sequence[int], table: Table) -> None:
+    """Refuse a ``[[simulation.fault]]`` whose node is not a drive of the robot.
+
+    Checked when the acquisition TOML is loaded (the robot's node ids are known then), so the
+    error names the file and the key, e.g. ``simulation.fault[0].node``, before anything runs.
+
+    Parameters
+    ----------
+    sim
+        The ``[simulation]`` table as read.
+    node_ids
+        CANopen node ids of the robot's drives.
+    table
+        The ``[simulation]`` table itself (file and key path of the message).
+
+    Raises
+    ------
+    ConfigError
+        Naming the file, ``simulation.fault[i].node`` and the node ids there are.
+    """
+    known = sorted(set(node_ids))
+    for i, spec in enumerate(sim.faults):
+        if spec.node is not None and spec.node not in known:
+            raise ConfigError(
+                f"{spec.kind}: no drive has node id {spec.node} "
+                f"(the robot's drives are {', '.join(str(n) for n in known)})",
+                file=table.file,
+                key=f"{table.key or 'simulation'}.fault[{i}].node",
+            )

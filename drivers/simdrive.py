@@ -2,7 +2,8 @@
 
 canopen's LocalNode answers SDO from its object dictionary and nothing more. This module adds what
 a drive does: NMT (boot-up, reset, start/stop, no SDO while stopped), a heartbeat producer (driven
-by the cell's timer thread), PDO mapping checks on SDO writes, RPDOs applied at the next SYNC,
+by the cell's clock), a heartbeat consumer of the master (0x1016, :mod:`.simclock`) with its fault
+reaction, PDO mapping checks on SDO writes, RPDOs applied at the next SYNC,
 TPDOs sent on SYNC (before the RPDO data is applied), the CiA 402 state machine driven by the
 controlword, fault and EMCY production. Physics and time live in :mod:`drivegain.drivers.sim`,
 which calls :meth:`begin_sync`, :meth:`tpdo_frames` and :meth:`latch` at each SYNC.
@@ -32,6 +33,7 @@ from drivegain.drivers.cia402 import (
     encode_statusword,
 )
 from drivegain.drivers.physics import MotorMode
+from drivegain.drivers.simclock import HeartbeatConsumer
 
 if TYPE_CHECKING:
     from drivegain.drivers.sim import SimulatedCell
@@ -179,6 +181,8 @@ class SimDrive:
         self.heartbeat_period_s = 0.0
         self.heartbeat_generation = 0
         self._fe_since: float | None = None  # following error beyond the window since (s)
+        self.consumer = HeartbeatConsumer(self, cell.clock)
+        self._ramp_reaction = False  # the fault reaction ramps the motor to rest
         self._apply_commissioning()
 
     # --- object dictionary --------------------------------------------------------------------
@@ -241,6 +245,9 @@ class SimDrive:
             self._update_motor()
         elif index == ob.PRODUCER_HEARTBEAT:
             self.cell.set_heartbeat(self, int(value) / 1000.0)
+        elif index == ob.CONSUMER_HEARTBEAT:
+            self.consumer.configure(int(value))
+            self.cell.watch_producer(self.consumer.producer)
         elif index == ob.SYNC_OVERFLOW:
             if ob.COMM_CYCLE_PERIOD in self.od and self.stored(ob.COMM_CYCLE_PERIOD) != 0:
                 raise SdoAbortedError(ABORT_DEVICE_STATE)
@@ -377,6 +384,8 @@ class SimDrive:
             if application or index < 0x2000:
                 del store[index]
         self._apply_commissioning()
+        if ob.CONSUMER_HEARTBEAT in self.od:  # back to its default with the communication objects
+            self.consumer.configure(int(self.stored(ob.CONSUMER_HEARTBEAT, 1)))
         if application:
             self.controlword = 0
             self.mode = 0
@@ -435,9 +444,18 @@ class SimDrive:
             self._set_state(new)
 
     def apply_quick_stop_end(self) -> None:
-        """The quick stop ramp reached rest: quick stop option code 2 switches the drive off."""
+        """The quick stop ramp reached rest: quick stop option code 2 switches the drive off; a
+        fault reaction ends in FAULT (brake)."""
         if self.state == State.QUICK_STOP_ACTIVE:
             self._set_state(State.SWITCH_ON_DISABLED)
+        elif self.state == State.FAULT_REACTION_ACTIVE and self._ramp_reaction:
+            self._ramp_reaction = False
+            self._set_state(State.FAULT)
+
+    def on_producer_heartbeat(self, sent: float) -> None:
+        """A heartbeat of the producer the consumer watches, sent at ``sent`` (cell's clock)."""
+        if not self.never_boots and self.nmt != NmtState.INITIALISING:
+            self.consumer.on_heartbeat(sent)
 
     def _set_state(self, state: State) -> None:
         self.state = state
@@ -446,7 +464,9 @@ class SimDrive:
     def _update_motor(self) -> None:
         if self.state == State.OPERATION_ENABLED:
             mode = MotorMode.TRACK
-        elif self.state == State.QUICK_STOP_ACTIVE:
+        elif self.state == State.QUICK_STOP_ACTIVE or (
+            self.state == State.FAULT_REACTION_ACTIVE and self._ramp_reaction
+        ):
             mode = MotorMode.QUICK_STOP
         else:
             mode = MotorMode.BRAKED
@@ -457,18 +477,29 @@ class SimDrive:
         """Follows CSP targets (operation enabled in cyclic synchronous position mode)."""
         return self.state == State.OPERATION_ENABLED and self.mode == ob.MODE_CSP
 
-    def inject_fault(self, code: int, *, emcy: bool) -> None:
-        """Fault reaction then FAULT, with ``code`` in 0x603F (and an EMCY if ``emcy``)."""
+    def inject_fault(self, code: int, *, emcy: bool, ramp: bool = False) -> None:
+        """Fault reaction then FAULT, with ``code`` in 0x603F (and an EMCY if ``emcy``).
+
+        ``ramp``: a powered motor first ramps to rest with the quick stop deceleration (0x6085),
+        as for a lost heartbeat; otherwise the reaction is "disable drive function" (the brake
+        holds at once).
+        """
         if self.state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
             return
         self.error_code = code
         self.error_register = ob.error_register_for(code)
         self._push_error_history(code)
+        self._ramp_reaction = ramp and self.state in (
+            State.OPERATION_ENABLED,
+            State.QUICK_STOP_ACTIVE,
+        )
         self._set_state(State.FAULT_REACTION_ACTIVE)
         if emcy:
             self.send_emcy(code)
-        # Fault reaction "disable drive function": the brake holds at once.
-        self._set_state(State.FAULT)
+        if self._ramp_reaction:
+            self.cell.watch_ramps()  # FAULT when the ramp ends (apply_quick_stop_end)
+        else:
+            self._set_state(State.FAULT)
 
     def _push_error_history(self, code: int) -> None:
         if ob.ERROR_HISTORY not in self.od:

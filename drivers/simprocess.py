@@ -8,15 +8,20 @@ The child is ``python -m drivegain.drivers.simprocess FD`` (not a multiprocessin
 would re-run the parent's main script), talking pickles over a socket pair. It ignores SIGINT
 and SIGTERM: a Ctrl-C or a service stop reaches the whole process group,
 and the drives must keep answering while the master decelerates and disables them. It stops when
-the parent says so or when the parent is gone (its end of the control pipe closes).
+the parent says so. When the parent is gone (its end of the control pipe closes: the master was
+killed), the drives go on as real drives would: their consumer of the master's heartbeat (0x1016)
+times out and their fault reaction brings the robot to rest; the child logs both on its standard
+error, then stops (at the latest :data:`OUTLIVE_S` later).
 """
 
 from __future__ import annotations
 
+import logging
 import signal
 import socket
 import subprocess
 import sys
+import time
 import weakref
 from contextlib import ExitStack
 from multiprocessing.connection import Connection
@@ -36,6 +41,9 @@ START_TIMEOUT_S = 60.0
 #: How long the child may take to stop and report, s.
 STOP_TIMEOUT_S = 10.0
 _POLL_S = 0.2
+#: Longest the child serves its drives after the master is gone: consumer time-out plus the
+#: quick stop of a fast robot, with a wide margin, s.
+OUTLIVE_S = 20.0
 #: Cells whose child may still run (the test suite's leak check reads it).
 RUNNING: weakref.WeakSet[SimulatedCellProcess] = weakref.WeakSet()
 
@@ -69,6 +77,7 @@ def _serve(
         cell.stop()
         conn.send(("error", "DriveError", f"the simulated drives' realtime policy: {exc}"))
         return
+    parent_gone = False
     try:
         conn.send(("ready", None, None))
         while True:
@@ -76,14 +85,45 @@ def _serve(
                 conn.recv()  # "stop"; EOFError when the parent is gone
                 break
     except (EOFError, OSError):
-        pass
+        parent_gone = True
     finally:
+        if parent_gone:
+            _outlive_master(cell)
         cell.stop()
         realtime.close()
     try:
         conn.send(("stopped", cell.errors, cell.fault_log()))
     except (OSError, EOFError):
         pass
+
+
+def _outlive_master(cell: SimulatedCell) -> None:
+    """The master is gone: serve until the drives that watch its heartbeat have stopped the
+    robot (every motor braked), at most :data:`OUTLIVE_S`; log what happened."""
+    log = logging.getLogger(__name__)
+    watching = [d for d in cell.drives.values() if d.consumer.active]
+    log.warning(
+        "simulated drives: the master is gone; %d of %d drives watch its heartbeat",
+        len(watching),
+        len(cell.drives),
+    )
+    deadline = time.monotonic() + OUTLIVE_S
+    while watching and time.monotonic() < deadline:
+        with cell.locked():
+            powered = cell.physics.any_powered
+        if not powered:
+            break
+        time.sleep(0.05)
+    with cell.locked():
+        speed = float(abs(cell.physics.qd).max())
+        states = sorted({d.state.name for d in cell.drives.values()})
+    log.warning(
+        "simulated drives: robot %s after the master left (largest joint speed %.3g rad/s, "
+        "drives %s)",
+        "at rest" if speed == 0.0 else "still moving",
+        speed,
+        ", ".join(states),
+    )
 
 
 def main(argv: list[str]) -> int:

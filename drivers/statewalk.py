@@ -7,7 +7,6 @@ the master's side, with the time-outs and the error reports (node, state, 0x603F
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable
 
 from drivegain.drivers import objects as ob
@@ -55,12 +54,13 @@ class StateWalker:
     def wait_state(self, d: DriveLink, accept: Callable[[State], bool], timeout: float) -> State:
         """Poll the statusword until ``accept(state)`` or ``timeout`` s; return the last state
         read."""
-        deadline = time.monotonic() + timeout
+        clock = self.supervisor.clock
+        deadline = clock.now() + timeout
         while True:
             state = self.read_state(d)
-            if accept(state) or time.monotonic() >= deadline:
+            if accept(state) or clock.now() >= deadline:
                 return state
-            time.sleep(self.timeouts.poll_s)
+            clock.sleep(self.timeouts.poll_s, f"node {d.node_id} to leave {state.name}")
 
     def walk(self, d: DriveLink, goal: State, state: State | None = None) -> None:
         """Move a drive to ``goal`` one transition at a time, each within ``state_s``.

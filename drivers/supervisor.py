@@ -23,6 +23,7 @@ import canopen
 from drivegain.drivers import objects as ob
 from drivegain.drivers.cia402 import State
 from drivegain.drivers.link import DriveLink, Timeouts
+from drivegain.drivers.simtime import TimeBase
 from drivegain.errors import BusError, DriveError
 from drivegain.formats.log import EventLevel
 
@@ -73,16 +74,25 @@ class Supervisor:
         The connected network (its notifier and bus are checked for failures).
     timeouts
         Time limits (heartbeat consumer time-out).
+    clock
+        The clock the time-outs count (wall, or lockstep's simulated clock).
 
     Notes
     -----
     The ``on_*`` methods run in the bus notifier thread, everything else in the caller's.
     """
 
-    def __init__(self, drives: Sequence[DriveLink], network: canopen.Network, timeouts: Timeouts):
+    def __init__(
+        self,
+        drives: Sequence[DriveLink],
+        network: canopen.Network,
+        timeouts: Timeouts,
+        clock: TimeBase,
+    ):
         self.drives = tuple(drives)
         self.network = network
         self.timeouts = timeouts
+        self.clock = clock
         self.by_node = {d.node_id: d for d in self.drives}
         self._lock = threading.Lock()
         self._events: deque[DriveEvent] = deque(maxlen=10_000)
@@ -169,7 +179,7 @@ class Supervisor:
     def check_heartbeats(self) -> None:
         """Queue a fault for every drive silent longer than the consumer time-out (once per
         time-out period of silence)."""
-        now = time.monotonic()
+        now = self.clock.now()
         limit = self.timeouts.heartbeat_s
         for d in self.drives:
             if d.last_heartbeat is None or now - max(d.last_heartbeat, d.silence_reported) <= limit:
@@ -189,7 +199,7 @@ class Supervisor:
         answers that cannot come."""
         if (
             d.last_heartbeat is None
-            or time.monotonic() - d.last_heartbeat <= self.timeouts.heartbeat_s
+            or self.clock.now() - d.last_heartbeat <= self.timeouts.heartbeat_s
         ):
             return True
         self.event(EventLevel.WARNING, d.node_id, None, "no heartbeat: drive skipped")
@@ -197,7 +207,7 @@ class Supervisor:
 
     def start_consumer(self) -> None:
         """Start the heartbeat consumer now (every drive counts as just heard)."""
-        now = time.monotonic()
+        now = self.clock.now()
         for d in self.drives:
             d.last_heartbeat = now
         self.monitoring = True
@@ -210,9 +220,10 @@ class Supervisor:
         DriveError
             A node did not within ``boot_s`` (code 0x8130, heartbeat / boot-up error).
         """
-        deadline = time.monotonic() + self.timeouts.boot_s
+        deadline = self.clock.now() + self.timeouts.boot_s
         for d in self.drives:
-            if not flags[d.node_id].wait(max(0.0, deadline - time.monotonic())):
+            left = deadline - self.clock.now()
+            if not self.clock.wait(flags[d.node_id], left, f"{what} (node {d.node_id})"):
                 raise DriveError(
                     f"{what} within {self.timeouts.boot_s} s",
                     node=d.node_id,
@@ -220,9 +231,9 @@ class Supervisor:
                 )
 
     # --- reception (notifier thread) -----------------------------------------------------------
-    def on_heartbeat(self, d: DriveLink, state: int) -> None:
-        """A heartbeat (or boot-up, state 0) of node ``d``."""
-        d.last_heartbeat = time.monotonic()
+    def on_heartbeat(self, d: DriveLink, state: int, sent: float) -> None:
+        """A heartbeat (or boot-up, state 0) of node ``d``, sent at ``sent`` (master's clock)."""
+        d.last_heartbeat = sent
         previous, d.nmt = d.nmt, state
         if state == 0:
             self.bootup[d.node_id].set()
@@ -269,7 +280,7 @@ class Supervisor:
             self.event(EventLevel.ERROR, None, passive, "CAN error passive")
             self.add_fault(BusError("CAN controller error passive", code=passive))
             return
-        now = time.monotonic()
+        now = self.clock.now()
         self._error_frames.append(now)
         self.event(EventLevel.WARNING, None, None, f"CAN error frame (class 0x{cls:X})")
         if len(self._error_frames) > ERROR_FRAMES_PER_S and now - self._error_frames[0] < 1.0:

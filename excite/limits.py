@@ -21,6 +21,13 @@ from drivegain.formats.trajectory import ExcitationLimits
 #: Relative tolerance of the sample checks (ruckig reaches its limits to round-off).
 TOLERANCE = 1e-9
 
+#: Most work of one :func:`fourier_usage` (grid points times 1 + 2H basis columns): about a
+#: second on a busy machine. The default grid (1 ms) of a 10 s period stays within it up to 90
+#: harmonics; a longer period or more harmonics gets a coarser grid.
+USAGE_BUDGET = 2_000_000
+#: Grid points evaluated at once by :func:`fourier_usage` (bounds its memory).
+USAGE_BLOCK = 20_000
+
 QUANTITIES = ("position", "velocity", "acceleration", "jerk")
 UNITS = ("rad", "rad/s", "rad/s²", "rad/s³")
 
@@ -127,7 +134,8 @@ def fourier_usage(
 ) -> FourierUsage:
     """Rigorous limit usage of a periodic Fourier series.
 
-    Each derivative is sampled over one period with step ``dt``; between samples the curve
+    Each derivative is sampled over one period with step ``dt`` (coarser when that grid would
+    exceed :data:`USAGE_BUDGET`); between samples the curve
     departs from the chord by at most dt²/8·sup|x''| (the linear interpolation error bound), with
     sup|x''| bounded analytically by :func:`~drivegain.formats.fourier.derivative_bounds`. So the
     sampled maximum plus that term bounds the true maximum over continuous time.
@@ -142,17 +150,26 @@ def fourier_usage(
         Sampling step, s.
     """
     n_steps = max(2, int(np.ceil(fourier.period_s / dt)))
+    # a long period on a fine grid would cost minutes: past the budget the step grows, and the
+    # slack term (step² / 8 · sup|x''|) with it, so the bound stays rigorous, only less tight
+    n_steps = min(n_steps, max(2, USAGE_BUDGET // (1 + 2 * fourier.harmonics)))
     step = fourier.period_s / n_steps
-    t = np.arange(n_steps + 1) * step  # both ends: the series is periodic
     theta = fourier.coefficients()
     bounds = derivative_bounds(fourier)
     usage = np.zeros((4, fourier.n))
     q0 = fourier.q0
     for k in range(4):
-        x = basis(t, fourier.omega, fourier.harmonics, k) @ theta.T
+        hi = np.full(fourier.n, -np.inf)
+        lo = np.full(fourier.n, np.inf)
+        # both ends (the series is periodic), a block of times at a time (bounded memory)
+        for start in range(0, n_steps + 1, USAGE_BLOCK):
+            t = np.arange(start, min(n_steps + 1, start + USAGE_BLOCK)) * step
+            x = basis(t, fourier.omega, fourier.harmonics, k) @ theta.T
+            hi = np.maximum(hi, x.max(axis=0))
+            lo = np.minimum(lo, x.min(axis=0))
         slack = step**2 / 8.0 * bounds[k + 2]
-        hi = x.max(axis=0) + slack
-        lo = x.min(axis=0) - slack
+        hi = hi + slack
+        lo = lo - slack
         if k == 0:
             room_hi = limits.upper - q0
             room_lo = q0 - limits.lower

@@ -46,3 +46,26 @@ def test_trace_name_is_checked(tmp_path: Path) -> None:
     (tmp_path / "old.blf").write_bytes(b"x")
     with pytest.raises(InputError, match="refusing to overwrite"):
         check_trace_path(tmp_path / "old.blf")
+
+
+def test_acquire_records_a_trace_beside_the_log(
+    tmp_path: Path, make_config, short_trajectory: Path
+) -> None:
+    """`drivegain acquire --can-trace`: every SYNC of the run is in the trace, the trace is named
+    in the log's metadata, and python-can reads it."""
+    from drivegain.cli import main
+    from drivegain.formats.logreader import read_run
+
+    out, trace = tmp_path / "run.mcap", tmp_path / "run.log"
+    argv = ["acquire", "--config", str(make_config()), "--trajectory", str(short_trajectory)]
+    assert main([*argv, "--out", str(out), "--can-trace", str(trace)]) == 0
+    log = read_run(out)
+    assert log.meta["can_trace"] == "run.log"
+    with can.LogReader(str(trace)) as reader:
+        frames = list(reader)
+    syncs = [m for m in frames if m.arbitration_id == 0x80]
+    rpdos = [m for m in frames if m.arbitration_id == 0x201]
+    tpdos = [m for m in frames if m.arbitration_id == 0x181]
+    assert len(syncs) >= log.n and len(tpdos) >= log.n  # both directions are traced
+    assert len(rpdos) >= log.n
+    assert main([*argv, "--out", str(tmp_path / "b.mcap"), "--can-trace", str(trace)]) == 2

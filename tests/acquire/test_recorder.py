@@ -204,3 +204,66 @@ def test_periodic_flush_makes_the_part_readable_while_running(tmp_path: Path) ->
     np.testing.assert_array_equal(part.cycle, np.arange(500))
     rec.abandon()
     assert (tmp_path / "run.mcap.part").exists() and not out.exists()
+
+
+def test_an_unfinished_log_without_cycles_is_discarded_one_with_cycles_kept(
+    tmp_path: Path,
+) -> None:
+    """A full disk before a run left a 0-byte .part that blocked the retry: a .part that holds
+    no recorded cycle is removed after a failed run, one that holds cycles never is."""
+    from drivegain.acquire.recorder import discard_unrecorded, holds_cycles, part_path
+
+    empty = tmp_path / "empty.mcap"
+    part_path(empty).write_bytes(b"")
+    header_only = tmp_path / "header.mcap"
+    LogWriter(header_only, _meta(), [("t.json", "application/json", b"{}")]).close_unfinished()
+    recorded = tmp_path / "recorded.mcap"
+    w = LogWriter(recorded, _meta())
+    for k in range(5):
+        r = _record(k)
+        w.write_joint_state(
+            cycle=r.cycle,
+            t=r.t,
+            log_time_ns=r.log_time_ns,
+            position=r.position,
+            current_reference=r.current_reference,
+            current=r.current,
+            setpoint=r.setpoint,
+        )
+    w.flush()
+    w.close_unfinished()
+    assert not holds_cycles(part_path(empty)) and not holds_cycles(part_path(header_only))
+    assert holds_cycles(part_path(recorded))
+    assert discard_unrecorded(empty) and not part_path(empty).exists()
+    assert discard_unrecorded(header_only) and not part_path(header_only).exists()
+    assert not discard_unrecorded(recorded) and part_path(recorded).exists()
+    assert not discard_unrecorded(tmp_path / "never.mcap")  # nothing there: nothing to do
+
+
+def test_a_log_that_cannot_be_started_is_one_line_and_leaves_nothing(tmp_path: Path) -> None:
+    """What the session's log creation raises on a full disk (ENOSPC after the .part was
+    created) becomes one line naming the file, and the empty .part goes."""
+    import errno
+    from types import SimpleNamespace
+
+    from drivegain.acquire.foreground import run_session
+    from drivegain.acquire.recorder import discard_unrecorded, part_path
+    from drivegain.acquire.session import RunState
+    from drivegain.errors import InputError
+
+    out = tmp_path / "run.mcap"
+
+    class FullDisk:
+        state = RunState.PLANNED
+        prepared = SimpleNamespace(request=SimpleNamespace(out=out))
+
+        def run(self) -> None:
+            part_path(out).write_bytes(b"")
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+    outcome = run_session(FullDisk())
+    err = outcome["error"]
+    assert isinstance(err, InputError)
+    assert str(err).startswith(f"{part_path(out)}: cannot write the log (No space left")
+    assert "\n" not in str(err)
+    assert discard_unrecorded(out) and not part_path(out).exists()

@@ -29,11 +29,18 @@ from drivegain.errors import BusError, ConfigError
 from drivegain.formats.logreader import read_run
 
 #: The realtime runs here check what a realtime run does, not how punctual the machine is: the
-#: timing supervision is switched off (no number of late cycles stops a run, and a TPDO is
-#: missing only when the drives are gone, not late). A stalled shared machine is then slower,
-#: never a failure. The supervision itself is tested on a fake clock
-#: (test_timing_and_supervision.py) and with injected faults in lockstep (test_session.py).
-NO_TIMING_FAULTS = {"tpdo_timeout_s": "5.0", "max_overruns": "1000000"}
+#: timing supervision is switched off (no number of late cycles stops a run, a TPDO is missing
+#: only when the drives are gone, not late, and heartbeats may stay away for seconds, both the
+#: drives' and the master's, whose threads a saturated machine holds up beyond the defaults of
+#: 0.35 s and 0.3 s). A stalled shared machine is then slower, never a failure. The
+#: supervision itself is tested on a fake clock (test_timing_and_supervision.py) and with
+#: injected faults in lockstep (test_session.py).
+NO_TIMING_FAULTS = {
+    "tpdo_timeout_s": "5.0",
+    "max_overruns": "1000000",
+    "heartbeat_timeout_s": "5.0",
+    "master_heartbeat_s": "2.0",
+}
 RELAXED = "\n".join(f"{k} = {v}" for k, v in NO_TIMING_FAULTS.items())
 
 
@@ -56,11 +63,16 @@ def _ipc_config(make_config: Callable[..., Path]) -> Path:
     """Drives in a child process, flushed often (for runs killed midway).
 
     Lockstep: the tests that use it are about processes and signals, which behave the same on
-    either clock, and in lockstep every supervision time-out counts simulated time, so a busy
-    machine cannot end the run before the signal does.
+    either clock. Drives in another process cannot share the master's simulated clock, so the
+    heartbeat consumers on both sides count wall time there: relaxed as in NO_TIMING_FAULTS, so
+    that a busy machine cannot end the run before the signal does.
     """
     return make_config(
-        clock="lockstep", interface="drivegain-ipc", acquisition="flush_interval_s = 0.2"
+        clock="lockstep",
+        interface="drivegain-ipc",
+        acquisition="\n".join(
+            ["flush_interval_s = 0.2", "master_heartbeat_s = 2.0", "heartbeat_timeout_s = 5.0"]
+        ),
     )
 
 
@@ -179,6 +191,37 @@ def test_the_drives_process_ends_when_the_master_is_killed(
         time.sleep(0.1)
     assert not _group_alive(proc.pid)
     assert read_run(out.with_name("run.mcap.part")).truncated
+
+
+def test_killed_master_the_drives_stop_the_robot_on_their_own(
+    tmp_path: Path,
+    make_config: Callable[..., Path],
+    long_trajectory: Path,
+    acquire_cli: SimpleNamespace,
+) -> None:
+    """SIGKILL of the master process mid-motion, the drives in their own process in realtime:
+    nothing tells them but the silence of the master's heartbeat. Each drive's consumer (0x1016,
+    three master periods: 6 s here) times out and its fault reaction ramps the robot to rest;
+    the drives' process reports both on its standard error (shared with the master), then
+    ends."""
+    path = make_config(clock="realtime", interface="drivegain-ipc", acquisition=RELAXED)
+    out = tmp_path / "run.mcap"
+    proc = acquire_cli.start(path, long_trajectory, out, new_session=True)
+    acquire_cli.wait_for_cycles(out.with_name("run.mcap.part"), proc, 400)
+    assert len(_group_alive(proc.pid)) == 2  # the master and the drives
+    proc.kill()
+    # the drives' process holds the stderr pipe until it ends: generous bound, against a hang
+    _, err = proc.communicate(timeout=120)
+    text = err.decode()
+    assert proc.returncode == -signal.SIGKILL
+    timeouts = [line for line in text.splitlines() if "heartbeat consumer time-out" in line]
+    assert len({line.split(":")[0] for line in timeouts}) == 6, text  # every drive noticed
+    assert all("no heartbeat of node 127 for 6000 ms" in line for line in timeouts)
+    assert "robot at rest after the master left (largest joint speed 0 rad/s" in text, text
+    deadline = time.monotonic() + 10
+    while _group_alive(proc.pid) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not _group_alive(proc.pid)
 
 
 def test_a_child_that_cannot_start_is_a_clear_error(

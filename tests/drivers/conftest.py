@@ -8,6 +8,7 @@ import itertools
 import queue
 import struct
 import textwrap
+import time
 from collections import deque
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -21,6 +22,7 @@ import pytest
 from drivegain.config import Robot, load_robot, resource_path
 from drivegain.drivers.bus import BusConfig, open_network
 from drivegain.drivers.master import Master, Timeouts
+from drivegain.drivers.realtime import RealtimePolicy
 from drivegain.drivers.sim import SimConfig, SimulatedCell
 
 TX, RX, TX_REPEAT = "tx", "rx", "tx*"
@@ -109,13 +111,23 @@ def i32(v: int) -> bytes:
     return struct.pack("<i", v)
 
 
+#: The master's heartbeat with the default node id 127: NMT operational (CiA 301).
+MASTER_HEARTBEAT = (0x77F, bytes([0x05]))
+
+
 class ScriptedBus(can.BusABC):
     """A CAN bus that plays a script: every frame sent must be the next ``tx`` entry, byte for
     byte; the ``rx`` entries that follow are then received. A ``tx*`` entry (cob, data,
-    response) may match any number of times until the next entry matches."""
+    response) may match any number of times until the next entry matches.
 
-    def __init__(self, script: list[tuple]):
+    ``background`` frames (cob -> data) are periodic frames of their own thread (the master's
+    heartbeat): they may come between any two entries, must match byte for byte, and are kept in
+    :attr:`background_sent` instead of playing the script."""
+
+    def __init__(self, script: list[tuple], background: dict[int, bytes] | None = None):
         self.script: deque[tuple] = deque(script)
+        self.background = dict(background or {})
+        self.background_sent: list[tuple[float, int, bytes]] = []
         self.sent: list[tuple[int, bytes]] = []
         self.mismatches: list[str] = []
         self._rx: queue.Queue[can.Message] = queue.Queue()
@@ -132,6 +144,11 @@ class ScriptedBus(can.BusABC):
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         cob, data = msg.arbitration_id, bytes(msg.data)
+        if cob in self.background:
+            if data != self.background[cob]:
+                self.mismatches.append(f"background {cob:03X} {data.hex(' ')}")
+            self.background_sent.append((time.monotonic(), cob, data))
+            return
         self.sent.append((cob, data))
         while self.script and self.script[0][0] == TX_REPEAT:
             entry = self.script[0]
@@ -172,8 +189,8 @@ def scripted() -> Iterator[Callable[[list[tuple]], Scripted]]:
     """Factory: a connected canopen Network on a ScriptedBus (disconnected after the test)."""
     made: list[canopen.Network] = []
 
-    def make(script: list[tuple]) -> Scripted:
-        bus = ScriptedBus(script)
+    def make(script: list[tuple], background: dict[int, bytes] | None = None) -> Scripted:
+        bus = ScriptedBus(script, dict([MASTER_HEARTBEAT]) if background is None else background)
         network = canopen.Network(bus)
         network.NOTIFIER_CYCLE = 0.02
         network.connect()
@@ -206,22 +223,34 @@ def make_rig(
     period_s: float = 0.004,
     timeouts: Timeouts = FAST,
 ) -> Iterator[Rig]:
-    """A simulated cell and a master on one virtual channel; everything closed on exit."""
+    """A simulated cell and a master on one virtual channel; everything closed on exit.
+
+    As the acquisition rig does: the realtime policy's process part (garbage-collector freeze)
+    is held from before the drives start to after they stop, and in lockstep the master shares
+    the drives' simulated clock.
+    """
     bus_cfg = BusConfig("virtual", channel)
-    cell = SimulatedCell(robot, bus_cfg, sim or SimConfig(), period_s)
-    cell.start()
-    try:
-        network = open_network(bus_cfg)
+    with RealtimePolicy().process():
+        cell = SimulatedCell(robot, bus_cfg, sim or SimConfig(), period_s)
+        cell.start()
         try:
-            master = Master(robot, network, period_s=period_s, timeouts=timeouts)
+            network = open_network(bus_cfg)
             try:
-                yield Rig(cell, master, network, bus_cfg)
+                master = Master(
+                    robot,
+                    network,
+                    period_s=period_s,
+                    timeouts=timeouts,
+                    clock=cell.clock.lockstep,
+                )
+                try:
+                    yield Rig(cell, master, network, bus_cfg)
+                finally:
+                    master.close()
             finally:
-                master.close()
+                network.disconnect()
         finally:
-            network.disconnect()
-    finally:
-        cell.stop()
+            cell.stop()
 
 
 @pytest.fixture

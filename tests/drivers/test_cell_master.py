@@ -7,10 +7,8 @@ from __future__ import annotations
 import time
 
 import numpy as np
-import pytest
 
 from drivegain.config import load_truth, resource_path
-from drivegain.drivers import gcfreeze
 from drivegain.drivers.master import Timeouts
 from drivegain.drivers.sim import SimConfig
 from drivegain.dynamics.model import build_model
@@ -21,18 +19,6 @@ from drivegain.formats.log import EventLevel
 
 PERIOD = 0.004
 NOISE_NM = 0.5
-
-
-@pytest.fixture(autouse=True)
-def _collector_frozen():
-    """The master no longer holds the garbage collector's freeze (the acquisition rig's realtime
-    policy does): these tests drive a master directly with tight time-outs, so they hold it as a
-    rig would, from before boot to after close."""
-    gcfreeze.hold()
-    try:
-        yield
-    finally:
-        gcfreeze.release()
 
 
 def smooth_trajectory(t: np.ndarray, q0: np.ndarray) -> np.ndarray:
@@ -157,19 +143,14 @@ def test_realtime_clock_follows_the_wall_clock(tx40, channel, rig_factory):
             next_t += PERIOD
             time.sleep(max(0.0, next_t - time.monotonic()))
         history = rig.cell.joint_torque_history()
-    sync_s = np.array([s.sync_time_ns for s in samples]) * 1e-9
-    # Simulated minus wall time at each SYNC, about a common offset. The simulated clock reads
-    # the wall clock to an internal step when the drives answer a SYNC, so a drive thread held up
-    # by a busy machine shows as an outlier (16 ms seen with both cores saturated, and 23 % of
-    # SYNCs more than 5 ms off in a full-suite run beside two busy loops), not as drift: medians.
-    # Seen on a quiet machine: within 0.5-0.7 ms.
-    lag = history.time_s - sync_s
-    lag -= np.median(lag)
-    assert np.median(np.abs(lag)) < 0.005, lag
-    # The simulation went on through the pause: the clocks agree as well after it as before it
-    # (a simulated clock that missed the 0.1 s pause would differ by 0.1 s afterwards).
-    assert abs(np.median(lag[31:]) - np.median(lag[:31])) < 0.005, lag
-    assert sync_s[31] - sync_s[30] > 0.1
+    sim = history.time_s
+    assert len(sim) == len(samples)  # one row per SYNC answered
+    assert np.all(np.diff(sim) > 0)  # the simulated clock advances monotonically
+    # It went on through the pause: the master received SYNC 30's answer before it slept 0.1 s
+    # and sent SYNC 31 after, so the drives' clock read the wall clock at least 0.1 s apart (to
+    # an internal step, and the period computed ahead); a lockstep clock would show one period.
+    # Timing figures (lag, jitter) are the benchmark's: python benchmarks/bench_acquire.py.
+    assert sim[31] - sim[30] > 0.1 - PERIOD - rig.cell.dt
 
 
 def test_quick_stop_brings_a_moving_robot_to_rest(tx40, channel, rig_factory):

@@ -1,5 +1,10 @@
 """Every fault the simulator can inject is detected by the master within its time limit, with the
-node id and the code in the error."""
+node id and the code in the error.
+
+The rig runs in lockstep: every time limit counts the simulated clock the master shares with the
+drives (drivers/simtime.py), so the detection instants asserted here are exact in simulated time,
+the same on a quiet and on a saturated machine. Wall-clock bounds only guard against a hang.
+"""
 
 from __future__ import annotations
 
@@ -8,7 +13,6 @@ import time
 import numpy as np
 import pytest
 
-from drivegain.drivers import gcfreeze
 from drivegain.drivers.cia402 import State
 from drivegain.drivers.faults import FaultKind, FaultSpec
 from drivegain.drivers.master import Timeouts
@@ -20,26 +24,17 @@ PERIOD = 0.004
 AT_S = 0.2  # simulated time of the fault
 AT_CYCLE = round(AT_S / PERIOD)  # the SYNC that triggers it
 TIMEOUTS = Timeouts(boot_s=0.4, sdo_s=0.3, state_s=0.3, heartbeat_s=0.3, tpdo_s=0.1)
-#: Scheduling slack allowed on top of a time limit (2 shared cores, other tests running).
-SLACK_S = 0.15
-
-
-@pytest.fixture(autouse=True)
-def _collector_frozen():
-    """The master no longer holds the garbage collector's freeze (the acquisition rig's realtime
-    policy does): these tests drive a master directly with tight time-outs, so they hold it as a
-    rig would, from before boot to after close."""
-    gcfreeze.hold()
-    try:
-        yield
-    finally:
-        gcfreeze.release()
+#: Simulated-time rounding allowed on an instant (the clock stands on the simulation step).
+EXACT = 1e-6
+#: Wall-clock bound of a test that waits for a free-running clock (against a hang only).
+HANG_GUARD_S = 30.0
 
 
 def stream_until_error(rig, max_cycles: int = 5000) -> tuple[DriveError, int, float]:
     """Boot, enable, cycle at the current position until the master raises.
 
-    Returns the error, the index of the failing cycle and the time.monotonic() it was raised."""
+    Returns the error, the index of the failing cycle and when it was raised on the drives'
+    clock (simulated time in lockstep)."""
     master = rig.master
     master.boot()
     master.enable()
@@ -48,14 +43,14 @@ def stream_until_error(rig, max_cycles: int = 5000) -> tuple[DriveError, int, fl
         try:
             master.cycle(q)
         except DriveError as exc:
-            return exc, k, time.monotonic()
+            return exc, k, rig.cell.clock.now()
     raise AssertionError("no fault detected")
 
 
 def fault_time(rig) -> float:
     (record,) = rig.cell.fault_log()
     assert record.sim_time_s == pytest.approx(AT_S, abs=PERIOD)
-    return record.monotonic_s
+    return record.clock_s
 
 
 @pytest.mark.parametrize(
@@ -91,10 +86,11 @@ def test_heartbeat_stop_is_detected_within_the_consumer_time(tx40, channel, rig_
         err, _, raised = stream_until_error(rig)
         stopped = fault_time(rig)
     assert (err.node, err.code) == (5, 0x8130)
-    # The last heartbeat left at most one producer period before the stop.
+    # The last heartbeat left at most one producer period before the stop; the consumer is
+    # checked once per cycle.
     delay = raised - stopped
     limit = TIMEOUTS.heartbeat_s
-    assert limit - TIMEOUTS.heartbeat_producer_s - 0.01 <= delay <= limit + SLACK_S
+    assert limit - TIMEOUTS.heartbeat_producer_s - EXACT <= delay <= limit + PERIOD + EXACT
 
 
 @pytest.mark.parametrize(
@@ -111,7 +107,7 @@ def test_missing_or_late_tpdo_is_detected_after_the_tpdo_time(tx40, channel, rig
         started = fault_time(rig)
     assert (err.node, err.code) == (spec.node, 0x8250)
     assert cycle == AT_CYCLE
-    assert TIMEOUTS.tpdo_s - 0.01 <= raised - started <= TIMEOUTS.tpdo_s + SLACK_S
+    assert raised - started == pytest.approx(TIMEOUTS.tpdo_s, abs=EXACT)
 
 
 def test_a_late_tpdo_within_the_limit_is_tagged_to_its_own_sync(tx40, channel, rig_factory):
@@ -122,7 +118,8 @@ def test_a_late_tpdo_within_the_limit_is_tagged_to_its_own_sync(tx40, channel, r
         q = rig.master.read_positions()
         samples = [rig.master.cycle(q) for _ in range(10)]
         history = rig.cell.joint_torque_history()
-    assert all(s.latency_s >= 0.02 for s in samples)
+    # in lockstep the delay is simulated time: exactly the fault's
+    assert all(s.latency_s == pytest.approx(0.02, abs=EXACT) for s in samples)
     counters = np.array([s.raw["sync_counter"] for s in samples])
     assert np.all(counters == history.counter[:, None])
 
@@ -130,12 +127,14 @@ def test_a_late_tpdo_within_the_limit_is_tagged_to_its_own_sync(tx40, channel, r
 def test_a_node_that_never_boots_fails_the_boot(tx40, channel, rig_factory):
     sim = SimConfig(faults=(FaultSpec(FaultKind.NEVER_BOOTS, node=4),))
     with rig_factory(tx40, channel, sim, PERIOD, TIMEOUTS) as rig:
-        start = time.monotonic()
+        start = rig.cell.clock.now()
+        wall = time.monotonic()
         with pytest.raises(DriveError) as info:
             rig.master.boot()
-        elapsed = time.monotonic() - start
+        elapsed = rig.cell.clock.now() - start
+        assert time.monotonic() - wall < HANG_GUARD_S
     assert (info.value.node, info.value.code) == (4, 0x8130)
-    assert TIMEOUTS.boot_s - 0.01 <= elapsed <= TIMEOUTS.boot_s + SLACK_S
+    assert elapsed == pytest.approx(TIMEOUTS.boot_s, abs=EXACT)
 
 
 def test_bus_off_is_a_bus_error(tx40, channel, rig_factory):
@@ -145,8 +144,8 @@ def test_bus_off_is_a_bus_error(tx40, channel, rig_factory):
         happened = fault_time(rig)
     assert isinstance(err, BusError)
     assert (err.node, err.code) == (None, 0x8140)
-    assert cycle in (AT_CYCLE, AT_CYCLE + 1)  # the error frame races the TPDOs of its cycle
-    assert raised - happened <= PERIOD + SLACK_S
+    assert cycle == AT_CYCLE  # the error frame goes out before the TPDOs of its SYNC
+    assert raised - happened <= EXACT
 
 
 def test_following_error_of_the_drive_itself(tx40, channel, rig_factory):
@@ -166,23 +165,22 @@ def test_following_error_of_the_drive_itself(tx40, channel, rig_factory):
 
 
 def test_power_loss_of_every_drive_is_noticed_and_close_does_not_hang(tx40, channel, rig_factory):
+    """With the drives gone nothing advances the simulated clock any more: it follows the wall
+    clock from there, so the master's consumer still notices the silence."""
     with rig_factory(tx40, channel, SimConfig(), PERIOD, TIMEOUTS) as rig:
         rig.master.boot()
         rig.master.enable()
+        rig.master.drain_events()
         rig.cell.stop()  # the drives lose power: no heartbeat, no SDO, no PDO
-        lost = time.monotonic()
+        deadline = time.monotonic() + HANG_GUARD_S
         with pytest.raises(DriveError) as info:
-            while True:
+            while time.monotonic() < deadline:
                 rig.master.check()
                 time.sleep(0.01)
-        noticed = time.monotonic() - lost
-        start = time.monotonic()
         rig.master.close()  # skips the silent drives instead of waiting for SDO time-outs
-        closing = time.monotonic() - start
+        events = rig.master.drain_events()
     assert info.value.code == 0x8130 and info.value.node in tx40.node_ids
-    assert noticed <= TIMEOUTS.heartbeat_s + SLACK_S
-    # Each drive's heartbeat runs on its own phase, set when boot configured it, so when the
-    # first drive is noticed lost another may still be within its consumer time and gets one
-    # SDO attempt (seen on a loaded machine: 0.30 s). By then every drive is overdue and skipped:
-    # at most one SDO time-out, where waiting on every drive would take six.
-    assert closing < 2 * TIMEOUTS.sdo_s
+    skipped = {e.node for e in events if "no heartbeat: drive skipped" in e.text}
+    # heartbeat phases differ per drive: when the first is noticed lost, another may still be
+    # within its consumer time and get one SDO attempt, never more than one
+    assert len(skipped) >= tx40.n - 1

@@ -9,12 +9,13 @@ from __future__ import annotations
 
 import math
 import struct
+import time
 
 import pytest
 
 from drivegain.drivers import objects as ob
 from drivegain.drivers.cia402 import State
-from drivegain.drivers.master import Master, Timeouts
+from drivegain.drivers.master import Master, MasterHeartbeat, Timeouts
 from drivegain.errors import ConfigError, DriveError
 from drivegain.formats.log import EventLevel
 
@@ -39,7 +40,13 @@ def map_pdo(f, comm: int, mapping: int, cob: int, entries: tuple[int, ...]) -> l
     ]
 
 
-def boot_script(f, tpdo1=TAGGED_TPDO1, tpdo2=TAGGED_TPDO2) -> list[tuple]:
+#: 0x1016 sub 1 for the default master heartbeat: node 127 (0x7F) << 16 | 300 ms (3 periods).
+DEFAULT_CONSUMER = bytes.fromhex("2C 01 7F 00")
+
+
+def boot_script(
+    f, tpdo1=TAGGED_TPDO1, tpdo2=TAGGED_TPDO2, consumer=DEFAULT_CONSUMER
+) -> list[tuple]:
     w, r = f.sdo_write, f.sdo_read
     s: list[tuple] = [
         (f.TX, 0x000, bytes([0x82, 0x01])),  # NMT reset communication, node 1
@@ -73,6 +80,9 @@ def boot_script(f, tpdo1=TAGGED_TPDO1, tpdo2=TAGGED_TPDO2) -> list[tuple]:
         *w(NODE, 0x1019, 0, f.u8(240)),  # SYNC counter overflow
         (f.TX, 0x601, bytes.fromhex("2B 17 10 00 64 00 00 00")),  # heartbeat 100 ms
         (f.RX, 0x581, bytes.fromhex("60 17 10 00 00 00 00 00")),
+        # Consumer of the master's heartbeat (0x1016 sub 1).
+        (f.TX, 0x601, bytes.fromhex("23 16 10 01") + consumer),
+        (f.RX, 0x581, bytes.fromhex("60 16 10 01 00 00 00 00")),
         *w(NODE, 0x60C2, 1, f.u8(4)),  # interpolation period 4 · 10^-3 s
         *w(NODE, 0x60C2, 2, f.i8(-3)),
         (f.TX, 0x601, bytes.fromhex("2F 60 60 00 08 00 00 00")),  # mode of operation: CSP
@@ -82,6 +92,16 @@ def boot_script(f, tpdo1=TAGGED_TPDO1, tpdo2=TAGGED_TPDO2) -> list[tuple]:
         (f.RX, 0x701, bytes([0x05])),  # heartbeat: OPERATIONAL
     ]
     return s
+
+
+def close_script(f) -> list[tuple]:
+    """close() of a booted drive at rest: its consumer of the master's heartbeat off (an orderly
+    end is no fault), then NMT pre-operational."""
+    return [
+        (f.TX, 0x601, bytes.fromhex("23 16 10 01 00 00 00 00")),  # 0x1016:01 = 0
+        (f.RX, 0x581, bytes.fromhex("60 16 10 01 00 00 00 00")),
+        (f.TX, 0x000, bytes([0x80, 0x01])),  # NMT pre-operational
+    ]
 
 
 def enable_script(f, start_sw: int = 0x0240, position: int = 1234) -> list[tuple]:
@@ -108,7 +128,7 @@ def tpdos(f, counter: int, position: int, demand: int, current: int, sw: int) ->
 
 
 def test_boot_sequence_is_byte_exact(one_joint_robot, scripted, frames):
-    close = [(frames.TX, 0x000, bytes([0x80, 0x01]))]  # close(): NMT pre-operational
+    close = close_script(frames)
     rig = scripted(boot_script(frames) + close)
     master = Master(one_joint_robot, rig.network, period_s=PERIOD, timeouts=TIMEOUTS)
     master.boot()
@@ -119,6 +139,38 @@ def test_boot_sequence_is_byte_exact(one_joint_robot, scripted, frames):
     master.close()
     assert rig.bus.mismatches == []
     assert rig.bus.remaining() == []
+
+
+def test_master_heartbeat_and_the_drives_consumer_of_it_are_byte_exact(
+    one_joint_robot, scripted, frames
+):
+    """Master node id 100, period 50 ms: COB-ID 0x764 carrying 0x05 (NMT operational), the first
+    at the start of boot, then periodically until close; the drive's consumer entry 0x1016:01 =
+    100 << 16 | 150 ms (three periods), switched off again (0) by close()."""
+    consumer = bytes.fromhex("96 00 64 00")  # 0x00640096
+    script = boot_script(frames, consumer=consumer) + close_script(frames)
+    rig = scripted(script, background={0x764: bytes([0x05])})
+    master = Master(
+        one_joint_robot,
+        rig.network,
+        period_s=PERIOD,
+        timeouts=TIMEOUTS,
+        heartbeat=MasterHeartbeat(node_id=100, period_s=0.05),
+    )
+    start = time.monotonic()
+    master.boot()
+    time.sleep(0.25)
+    master.close()
+    closed = time.monotonic()
+    assert rig.bus.mismatches == []
+    assert rig.bus.remaining() == []
+    beats = list(rig.bus.background_sent)
+    assert all((cob, data) == (0x764, b"\x05") for _, cob, data in beats)
+    assert beats and beats[0][0] - start < 0.05  # at once, before the drives are reset
+    assert len(beats) >= 3  # periodic (0.25 s at 50 ms; counted loosely, the machine is shared)
+    time.sleep(0.15)
+    assert len(rig.bus.background_sent) == len(beats)  # silent once closed
+    assert all(t <= closed for t, _, _ in rig.bus.background_sent)
 
 
 def test_enable_cycle_quick_stop_disable_close_are_byte_exact(one_joint_robot, scripted, frames):
@@ -142,7 +194,7 @@ def test_enable_cycle_quick_stop_disable_close_are_byte_exact(one_joint_robot, s
         (f.TX, 0x080, bytes([0x03])),
         *tpdos(f, 3, 10012, 0, 0, 0x0240),  # at rest: SWITCH_ON_DISABLED
         # close(): nothing powered any more -> no disable; NMT pre-operational.
-        (f.TX, 0x000, bytes([0x80, 0x01])),
+        *close_script(f),
     ]
     rig = scripted(script)
     master = Master(one_joint_robot, rig.network, period_s=PERIOD, timeouts=TIMEOUTS)
@@ -174,7 +226,7 @@ def test_fault_reset_uses_a_rising_edge(one_joint_robot, scripted, frames):
         # close() of an enabled drive: shutdown, check, NMT pre-operational.
         *f.sdo_write(NODE, 0x6040, 0, f.u16(0x0006)),
         *f.sdo_read(NODE, 0x6041, 0, f.u16(0x0231)),
-        (f.TX, 0x000, bytes([0x80, 0x01])),
+        *close_script(f),
     ]
     rig = scripted(script)
     master = Master(one_joint_robot, rig.network, period_s=PERIOD, timeouts=TIMEOUTS)
@@ -196,7 +248,7 @@ def test_a_stuck_transition_times_out_with_node_and_state(one_joint_robot, scrip
         *enable_script(f)[:10],  # up to the shutdown command
         (f.TX_REPEAT, *poll, stuck),
         *f.sdo_read(NODE, 0x603F, 0, f.u16(0x5530)),  # the master asks for the error code
-        (f.TX, 0x000, bytes([0x80, 0x01])),  # close()
+        *close_script(f),  # close()
     ]
     rig = scripted(script)
     master = Master(one_joint_robot, rig.network, period_s=PERIOD, timeouts=TIMEOUTS)
@@ -255,7 +307,7 @@ def test_drives_without_the_sync_echo_get_a_standard_mapping(
         (f.RX, 0x281, struct.pack("<hhBb", -52, -52, 0, 8)),
         *f.sdo_write(NODE, 0x6040, 0, f.u16(0x0006)),  # close()
         *f.sdo_read(NODE, 0x6041, 0, f.u16(0x0231)),
-        (f.TX, 0x000, bytes([0x80, 0x01])),
+        *close_script(f),
     ]
     rig = scripted(script)
     master = Master(one_joint_robot, rig.network, period_s=PERIOD, eds=eds, timeouts=TIMEOUTS)

@@ -214,6 +214,30 @@ def test_emcy_fault_and_fault_reset(probe, cell_factory):
     assert probe.exchange(0x602, h("40 03 10 01 00 00 00 00"))[1] == h("43 03 10 01 11 86 00 00")
 
 
+def test_heartbeat_consumer_time_out_sends_emcy_8130_and_faults(probe, cell_factory):
+    """0x1016 sub 1 = producer 127 (the master) << 16 | 6 ms: monitoring starts with its first
+    heartbeat; in lockstep each SYNC is 4 ms of simulated time, so the second SYNC after the last
+    heartbeat passes the time-out."""
+    cell_factory()
+    for _ in range(6):
+        probe.recv()
+    assert probe.exchange(0x602, h("23 16 10 01 06 00 7F 00")) == (
+        0x582,
+        h("60 16 10 01 00 00 00 00"),
+    )
+    probe.send(0x080, h("01"))
+    assert probe.nothing()  # not monitoring before the producer's first heartbeat
+    probe.send(0x77F, h("05"))  # the master's heartbeat: NMT operational
+    probe.send(0x080, h("02"))
+    assert probe.nothing()
+    probe.send(0x080, h("03"))
+    # Heartbeat error 0x8130, error register: generic | communication.
+    assert probe.recv() == (0x082, h("30 81 11 00 00 00 00 00"))
+    assert probe.exchange(0x602, h("40 41 60 00 00 00 00 00"))[1] == h("4B 41 60 00 08 02 00 00")
+    assert probe.exchange(0x602, h("40 3F 60 00 00 00 00 00"))[1] == h("4B 3F 60 00 30 81 00 00")
+    assert probe.nothing()  # only the node that watches
+
+
 def test_tpdo_layout_matches_struct_sizes():
     # The TPDO layouts the master maps must fit the 8 bytes of a CAN frame.
     from drivegain.drivers.objects import PLAIN_LAYOUT, TAGGED_LAYOUT, pdo_struct

@@ -1,0 +1,363 @@
+"""Which clock the supervision reads: the wall clock, or the simulated clock of lockstep.
+
+A master and the simulated drives it talks to in lockstep share one :class:`LockstepClock`
+(both on python-can's in-process ``virtual`` bus). Simulated time then advances in two ways
+only:
+
+- by one period per SYNC (the drives' SYNC handler calls :meth:`LockstepClock.sync_instant`);
+- while a party waits for something that cannot come any more: when every frame sent so far has
+  been handled by its receiver (the clock counts the frames each side sends and handles), nothing
+  is in flight, so simulated time jumps to the next scheduled action (a heartbeat, a late TPDO)
+  or to the end of the wait, whichever comes first.
+
+Every supervision time-out (heartbeat consumers on both sides, TPDO time-out, boot and state
+waits) therefore counts simulated time: a run has the same outcome on a quiet and on a saturated
+machine. The wall clock only bounds a real hang (:data:`HANG_S`): a wait during which nothing
+moves for that long raises a :class:`~drivegain.errors.DriveError` naming what hung.
+
+When one side leaves (a master closed or dead, drives powered off), nobody can advance the clock
+for it: the clock then follows the wall clock from where it stood (:meth:`LockstepClock.detach`),
+so the remaining side's consumer still fires, and its scheduled actions run from a thread of the
+clock. Frames carry the simulated time they were sent at (``msg.timestamp``), so a heartbeat is
+stamped with its simulated instant whatever the receiving thread's delay.
+"""
+
+from __future__ import annotations
+
+import heapq
+import itertools
+import math
+import threading
+import time
+from collections.abc import Callable
+from typing import Any, Protocol
+
+import can
+
+from drivegain.errors import DriveError
+
+#: Wall-clock seconds a lockstep wait may see no progress at all before it is called a hang.
+HANG_S = 30.0
+#: Wall-clock slice a lockstep wait sleeps while frames are in flight, s.
+_POLL_S = 0.0005
+
+
+class Flag(Protocol):
+    """What a wait waits for (a :class:`threading.Event`)."""
+
+    def is_set(self) -> bool: ...
+
+    def wait(self, timeout: float | None = None) -> bool: ...
+
+
+class TimeBase(Protocol):
+    """The clock of a master's supervision (seconds, any origin)."""
+
+    @property
+    def simulated(self) -> bool:
+        """True for lockstep's simulated clock."""
+        ...
+
+    def now(self) -> float:
+        """The present, s."""
+        ...
+
+    def stamp(self, msg: can.Message) -> float:
+        """When ``msg`` was sent, on this clock, s (called at reception)."""
+        ...
+
+    def wait(self, flag: Flag, timeout_s: float, what: str) -> bool:
+        """Wait until ``flag`` is set (True) or ``timeout_s`` of this clock passed (False)."""
+        ...
+
+    def sleep(self, seconds: float, what: str) -> None:
+        """Let ``seconds`` of this clock pass."""
+        ...
+
+    def sync_time(self, sent: float) -> float:
+        """The instant of the SYNC last sent (``sent``: :meth:`now` when it was sent), s."""
+        ...
+
+
+class WallTime:
+    """The wall clock (``time.monotonic``): realtime runs and hardware."""
+
+    simulated = False
+
+    def now(self) -> float:
+        return time.monotonic()
+
+    def stamp(self, msg: can.Message) -> float:
+        return time.monotonic()
+
+    def wait(self, flag: Flag, timeout_s: float, what: str) -> bool:
+        return flag.wait(max(0.0, timeout_s))
+
+    def sleep(self, seconds: float, what: str) -> None:
+        time.sleep(max(0.0, seconds))
+
+    def sync_time(self, sent: float) -> float:
+        return sent
+
+
+class _Never:
+    """A flag that is never set (for :meth:`LockstepClock.sleep`)."""
+
+    def is_set(self) -> bool:
+        return False
+
+    def wait(self, timeout: float | None = None) -> bool:
+        if timeout:
+            time.sleep(timeout)
+        return False
+
+
+class _Party:
+    """One side of the bus (the master's network or the simulated drives'): frames it sent and
+    frames it has finished handling."""
+
+    def __init__(self, name: str):
+        self.name = name
+        self.sent = 0
+        self.handled = 0
+        self.thread: int | None = None  # its bus reader thread
+
+
+class _Counter(can.Listener):
+    """Last listener of a party's notifier: a frame counts as handled once every listener before
+    it has run."""
+
+    def __init__(self, clock: LockstepClock, party: _Party):
+        self.clock = clock
+        self.party = party
+
+    def on_message_received(self, msg: can.Message) -> None:
+        with self.clock._lock:
+            self.party.handled += 1
+            self.party.thread = threading.get_ident()
+            self.clock._changed.notify_all()
+
+    def stop(self) -> None:
+        """Nothing to release."""
+
+
+class LockstepClock:
+    """Simulated time shared by a master and its simulated drives in one process.
+
+    Parameters
+    ----------
+    hang_s
+        Wall-clock seconds without progress that make a wait a hang.
+    """
+
+    simulated = True
+
+    def __init__(self, hang_s: float = HANG_S):
+        self.hang_s = hang_s
+        self._lock = threading.RLock()
+        self._changed = threading.Condition(self._lock)
+        self._advance = threading.RLock()  # actions fire in time order, one thread at a time
+        self._now = 0.0
+        self._last_sync = 0.0  # the first SYNC is one period after power-on, as before any jump
+        self._heap: list[tuple[float, int, Callable[[], None]]] = []
+        self._seq = itertools.count()
+        self._parties: list[_Party] = []
+        self._met = False  # two parties were attached at once
+        self._free_since: float | None = None  # wall time the clock started following the wall
+        self._free_thread: threading.Thread | None = None
+        self._closed = False
+
+    # --- time ------------------------------------------------------------------------------
+    def now(self) -> float:
+        """Simulated time, s (follows the wall clock once a side has left)."""
+        with self._lock:
+            if self._free_since is not None:
+                return self._now + time.monotonic() - self._free_since
+            return self._now
+
+    def stamp(self, msg: can.Message) -> float:
+        """The simulated instant ``msg`` was sent (its sender stamped it; a frame of a bus that
+        is no party of this clock carries a wall-clock stamp, later than any simulated one: it
+        counts as sent now)."""
+        return min(float(msg.timestamp), self.now())
+
+    @property
+    def free_running(self) -> bool:
+        """A side has left: the clock follows the wall clock."""
+        return self._free_since is not None
+
+    def sync_instant(self, period_s: float, step_s: float) -> float:
+        """Advance to the instant of a SYNC just received and return it, s.
+
+        One period after the previous SYNC, or now if a wait already went past that; rounded up
+        to the simulation step ``step_s``. Actions due until then run first.
+        """
+        with self._lock:
+            t = max(self._last_sync + period_s, self.now())
+            t = math.ceil(t / step_s - 1e-6) * step_s
+            self._last_sync = t
+        self.advance_to(t)
+        return t
+
+    def call_at(self, t: float, fn: Callable[[], None]) -> None:
+        """Run ``fn`` when simulated time reaches ``t`` (in the thread that advances it)."""
+        with self._lock:
+            heapq.heappush(self._heap, (t, next(self._seq), fn))
+            self._changed.notify_all()
+
+    def advance_to(self, t: float) -> None:
+        """Run every action due by ``t`` in time order, then stand at ``t`` (never goes back)."""
+        with self._advance:
+            while True:
+                with self._lock:
+                    if not self._heap or self._heap[0][0] > t:
+                        if self._free_since is None:
+                            self._now = max(self._now, t)
+                        return
+                    due, _, fn = heapq.heappop(self._heap)
+                    if self._free_since is None:
+                        self._now = max(self._now, due)
+                fn()
+
+    # --- the two sides ---------------------------------------------------------------------
+    def attach(self, network: Any, name: str) -> None:
+        """Count the frames ``network`` (a connected :class:`canopen.Network`) sends and handles,
+        and stamp the frames it sends with simulated time. Call it once the network's own
+        listeners are in place: the counter must be its notifier's last listener."""
+        bus, notifier = network.bus, network.notifier
+        party = _Party(name)
+        send, shutdown = bus.send, bus.shutdown
+        # the virtual bus overwrites a frame's time stamp unless told to keep it
+        bus.preserve_timestamps = True
+
+        def counted_send(msg: can.Message, timeout: float | None = None) -> None:
+            with self._lock:
+                msg.timestamp = self.now()
+                party.sent += 1
+            send(msg, timeout)
+
+        def detaching_shutdown() -> None:
+            self.detach(name)
+            shutdown()
+
+        bus.send = counted_send
+        bus.shutdown = detaching_shutdown
+        notifier.add_listener(_Counter(self, party))
+        with self._lock:
+            self._parties.append(party)
+            if len(self._parties) == 2:
+                self._met = True
+                for p in self._parties:  # frames sent before both listened reached nobody
+                    p.sent = p.handled = 0
+
+    def detach(self, name: str) -> None:
+        """Side ``name`` left: from now on the clock follows the wall clock (the other side's
+        consumer must still see it go), and its own actions run from the clock's thread."""
+        with self._lock:
+            self._parties = [p for p in self._parties if p.name != name]
+            if not self._met or self._free_since is not None:
+                return
+            self._free_since = time.monotonic()
+            self._changed.notify_all()
+            if self._parties:
+                self._free_thread = threading.Thread(
+                    target=self._run_free, name="drivegain-lockstep-clock", daemon=True
+                )
+                self._free_thread.start()
+
+    def close(self) -> None:
+        """Stop the clock's thread (the drives stopped)."""
+        with self._lock:
+            self._closed = True
+            self._heap.clear()
+            self._changed.notify_all()
+        thread = self._free_thread
+        if thread is not None and thread is not threading.current_thread():
+            thread.join(2.0)
+
+    def _run_free(self) -> None:
+        while True:
+            with self._lock:
+                while not self._closed:
+                    now = self.now()
+                    if self._heap and self._heap[0][0] <= now:
+                        break
+                    wait = self._heap[0][0] - now if self._heap else None
+                    self._changed.wait(wait)
+                if self._closed:
+                    return
+            self.advance_to(self.now())
+
+    def settled(self) -> bool:
+        """Every frame sent has been handled by the other side: nothing is in flight."""
+        with self._lock:
+            if len(self._parties) < 2:
+                return True
+            a, b = self._parties[0], self._parties[1]
+            return b.handled >= a.sent and a.handled >= b.sent
+
+    # --- waits -----------------------------------------------------------------------------
+    def wait(self, flag: Flag, timeout_s: float, what: str) -> bool:
+        """Wait until ``flag`` is set (True) or ``timeout_s`` simulated seconds passed (False).
+
+        Raises
+        ------
+        DriveError
+            Nothing moved (no frame handled, no simulated time passed) for :attr:`hang_s`
+            wall-clock seconds: the simulation hung while waiting for ``what``.
+        """
+        # The wait counts from when what the caller sent has been handled (the SYNC it waits
+        # the answer of has advanced the clock), not from when this thread got here: the same
+        # instant however late either thread runs.
+        deadline: float | None = None
+        progress = time.monotonic()
+        seen = self._progress()
+        while True:
+            if flag.is_set():
+                return True
+            if self.free_running:
+                if deadline is None:
+                    deadline = self.now() + max(0.0, timeout_s)
+                left = deadline - self.now()
+                if left <= 0.0:
+                    return bool(flag.is_set())
+                flag.wait(min(left, 0.01))
+                continue
+            if self.settled():
+                # the flag is set before the frame that set it counts as handled: once settled,
+                # this look at it is final (without it, a frame handled since the first look
+                # would let simulated time jump although the wait is over)
+                if flag.is_set():
+                    return True
+                if deadline is None:
+                    deadline = self.now() + max(0.0, timeout_s)
+                with self._lock:
+                    nxt = self._heap[0][0] if self._heap else math.inf
+                if nxt <= deadline:
+                    self.advance_to(nxt)
+                    progress = time.monotonic()
+                    continue
+                self.advance_to(deadline)
+                return bool(flag.is_set())
+            flag.wait(_POLL_S)
+            now_seen = self._progress()
+            if now_seen != seen:
+                seen, progress = now_seen, time.monotonic()
+            elif time.monotonic() - progress > self.hang_s:
+                raise DriveError(
+                    f"lockstep simulation hung: waiting for {what}, no frame was handled and no "
+                    f"simulated time passed for {self.hang_s:g} s of wall-clock time"
+                )
+
+    def sleep(self, seconds: float, what: str) -> None:
+        """Let ``seconds`` of simulated time pass (actions due meanwhile run)."""
+        self.wait(_Never(), seconds, what)
+
+    def sync_time(self, sent: float) -> float:
+        """The instant the drives handled the last SYNC at, s."""
+        with self._lock:
+            return self._last_sync
+
+    def _progress(self) -> tuple[int, ...]:
+        with self._lock:
+            return tuple(x for p in self._parties for x in (p.sent, p.handled))
