@@ -78,7 +78,8 @@ def run_foreground(
     if sim is None and cfg.simulation is not None:
         sim = simulation_for_run(cfg.simulation, request.payload, seed)
     rig = Rig(cfg, simulation=sim)
-    with rig as master:
+    # the trace opens before the drives boot: configuration and shutdown frames are in it too
+    with can_trace(cfg.bus, request.can_trace), rig as master:
         if stop.requested:
             raise OperatorStop(f"stopped by {stop.reason} before the drives were enabled")
         session = Session(
@@ -88,8 +89,7 @@ def run_foreground(
         if stop.requested:
             raise OperatorStop(f"stopped by {stop.reason} before the drives were enabled")
         try:
-            with can_trace(cfg.bus, request.can_trace):
-                return _run_on_thread(session, prepared, progress, title)
+            return _run_on_thread(session, prepared, progress, title)
         except BaseException:
             # a log that could not even be started would block the retry; one with cycles stays
             discard_unrecorded(request.out)

@@ -8,6 +8,7 @@ give the same cycles and setpoints (timing is not asserted: emulation is slow an
 
 from __future__ import annotations
 
+import signal
 import subprocess
 import sys
 import time
@@ -70,12 +71,14 @@ class Run:
     log: RunLog | None
 
 
-def acquire(folder: Path, interface: str, channel: str, trajectory: Path) -> Run:
+def acquire(
+    folder: Path, interface: str, channel: str, trajectory: Path, extra: tuple[str, ...] = ()
+) -> Run:
     folder.mkdir()
     cfg = write_config(folder / "acquire.toml", interface, channel)
     out = folder / "run.mcap"
     cmd = [sys.executable, "-m", "drivegain.cli", "acquire", "--config", str(cfg)]
-    cmd += ["--trajectory", str(trajectory), "--out", str(out)]
+    cmd += ["--trajectory", str(trajectory), "--out", str(out), *extra]
     t0 = time.monotonic()
     proc = subprocess.run(
         cmd, capture_output=True, text=True, timeout=ACQUIRE_TIMEOUT_S, cwd=folder
@@ -99,7 +102,21 @@ def trajectory(tmp_path_factory: pytest.TempPathFactory) -> Path:
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory: pytest.TempPathFactory, trajectory: Path) -> dict[str, Run]:
     base = tmp_path_factory.mktemp("acquire-vcan")
-    got = {"vcan": acquire(base / "vcan", "socketcan", "vcan0", trajectory)}
+    # candump beside the run, as a user watches the bus; the run records its own trace too
+    dump = base / "candump.log"
+    with dump.open("w") as fh:
+        candump = subprocess.Popen(["candump", "-L", "-r", str(4 << 20), "vcan0"], stdout=fh)
+        try:
+            time.sleep(2.0)  # let it open its socket (only frames after that are compared)
+            trace = ("--can-trace", str(base / "vcan" / "trace.log"))
+            got = {"vcan": acquire(base / "vcan", "socketcan", "vcan0", trajectory, trace)}
+        finally:
+            candump.send_signal(signal.SIGINT)
+            try:
+                candump.wait(30)
+            except subprocess.TimeoutExpired:
+                candump.kill()
+                candump.wait()
     if got["vcan"].status == 0:  # the reference is worth its minutes only then
         got["virtual"] = acquire(base / "virtual", "virtual", "vcan-test-reference", trajectory)
     return got
@@ -125,3 +142,44 @@ def test_vcan0_run_matches_the_virtual_bus_run(runs: dict[str, Run]) -> None:
     assert vcan.log.cycle.size == virtual.log.cycle.size
     np.testing.assert_array_equal(vcan.log.cycle, virtual.log.cycle)
     np.testing.assert_array_equal(vcan.log.setpoint, virtual.log.setpoint)
+
+
+def test_the_runs_trace_is_what_candump_saw_beside_it(
+    runs: dict[str, Run], tmp_path_factory: pytest.TempPathFactory
+) -> None:
+    """The trace of ``--can-trace`` (python-can's logger on its own socket) opens with
+    :class:`can.LogReader`, is named in the log, and holds exactly the frames ``candump -L``
+    recorded over the same stretch of the bus: boot, configuration, every cycle, shutdown."""
+    import can
+
+    run = runs["vcan"]
+    assert run.status == 0, run.output
+    assert run.log is not None and run.log.meta["can_trace"] == "trace.log"
+    folder = run.log.path.parent
+    with can.LogReader(str(folder / "trace.log")) as reader:
+        traced = [(m.arbitration_id, bytes(m.data)) for m in reader]
+    with can.LogReader(str(folder.parent / "candump.log")) as reader:
+        dumped = [(m.arbitration_id, bytes(m.data)) for m in reader]
+    assert len(traced) > 3 * run.log.cycle.size  # SYNC, RPDOs and TPDOs of every cycle
+    first = dumped.index(traced[0])
+    assert dumped[first : first + len(traced)] == traced
+
+
+def test_a_log_recorded_over_vcan0_is_identified(
+    runs: dict[str, Run], tmp_path_factory: pytest.TempPathFactory
+) -> None:
+    """``drivegain identify`` reads the vcan0 log: the inverse dynamic model with the a priori
+    gains fits the recorded currents (the dynamic parameters of the simulated TX-40)."""
+    import json
+
+    run = runs["vcan"]
+    assert run.status == 0 and run.log is not None, run.output
+    out = tmp_path_factory.mktemp("identify-vcan") / "report"
+    cmd = [sys.executable, "-m", "drivegain.cli", "identify", "--robot", "tx40"]
+    cmd += ["--unloaded", str(run.log.path), "--gains", "apriori", "--decimate", "2"]
+    cmd += ["--out", str(out)]  # a 3 s run: little decimation, or the filter borders eat it
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=ACQUIRE_TIMEOUT_S)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    report = json.loads((out / "report.json").read_text())
+    assert report["method"]["samples"] > 0
+    assert 0.0 < report["residual"]["relative"] < 0.5
