@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import logging
 import os
+import shlex
 import threading
 import time
 from dataclasses import dataclass, field
@@ -144,8 +145,11 @@ class Daemon:
         try:
             self._boot()
             self._notify("READY=1")
+            sock = os.path.abspath(self.settings.socket)
             log.info(
-                "daemon ready",
+                "daemon ready: control socket %s (try: drivegain ctl status --socket %s)",
+                sock,
+                shlex.quote(sock),
                 extra={"event": "ready", "socket": str(self.settings.socket), "pid": os.getpid()},
             )
             self._loop()

@@ -39,6 +39,7 @@ HANDLERS = {
     "excite": "drivegain.excite.commands:excite",
     "acquire": "drivegain.acquire.commands:acquire",
     "daemon": "drivegain.acquire.commands:daemon",
+    "ctl": "drivegain.acquire.ctl:ctl_command",
     "identify": "drivegain.identify.pipeline:identify_command",
     "convert csv": "drivegain.identify.convert:convert_csv_command",
     "convert table": "drivegain.identify.table:convert_table_command",
@@ -288,6 +289,32 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", type=Path, required=True, help="acquisition TOML")
     _bus_options(p)
     p.set_defaults(handler="daemon")
+
+    p = sub.add_parser(
+        "ctl",
+        parents=[common],
+        help="talk to a running daemon: status, run, stop",
+        description="examples:\n    drivegain ctl status --config config/acquire-sim.toml\n"
+        "    drivegain ctl run --socket drivegain-sim.sock --trajectory traj.json --wait\n"
+        "    drivegain ctl stop --socket /run/drivegain/control.sock",
+    )
+    csub = p.add_subparsers(
+        dest="ctl_action", metavar="ACTION", required=True, parser_class=_Parser
+    )
+    ctl = _Parser(add_help=False)
+    ctl.add_argument("--socket", type=Path, help="the daemon's control socket")
+    ctl.add_argument(
+        "--config", type=Path, help="acquisition TOML whose [daemon] socket to use (no --socket)"
+    )
+    ctl.add_argument("--json", action="store_true", help="print the daemon's raw JSON reply")
+    csub.add_parser("status", parents=[common, ctl], help="state, run in progress, last run")
+    c = csub.add_parser("run", parents=[common, ctl], help="start a run (log in output_dir)")
+    c.add_argument("--trajectory", type=Path, required=True, help="trajectory JSON")
+    c.add_argument("--payload", type=Path, help="payload TOML fixed to the robot for this run")
+    c.add_argument("--label", help="run label (default: unloaded/loaded)")
+    c.add_argument("--wait", action="store_true", help="wait for the run to end, then summarise")
+    csub.add_parser("stop", parents=[common, ctl], help="bring the run in progress to rest")
+    p.set_defaults(handler="ctl")
 
     p = sub.add_parser("identify", parents=[common], help="offline identification from logs")
     p.add_argument("--robot", type=robot_file, required=True, help=ROBOT_HELP)
