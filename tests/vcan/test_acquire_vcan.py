@@ -39,8 +39,9 @@ def write_trajectory(path: Path) -> Path:
     return save_trajectory(path, trajectory_document(f, robot, {"cond": 0.0}))
 
 
-def write_config(path: Path, interface: str, channel: str) -> Path:
-    """The simulated TX-40 in lockstep on the given bus (the layout of acquire-sim.toml)."""
+def write_config(path: Path, interface: str, channel: str, extra: str = "") -> Path:
+    """The simulated TX-40 in lockstep on the given bus (the layout of acquire-sim.toml), with
+    ``extra`` TOML lines at the end (injected faults)."""
     path.write_text(
         "\n".join(
             [
@@ -56,6 +57,7 @@ def write_config(path: Path, interface: str, channel: str) -> Path:
                 "seed = 3",
                 "current_noise_nm = 0.05",
                 "history_s = 5.0",
+                extra,
             ]
         )
         + "\n"
@@ -183,3 +185,70 @@ def test_a_log_recorded_over_vcan0_is_identified(
     report = json.loads((out / "report.json").read_text())
     assert report["method"]["samples"] > 0
     assert 0.0 < report["residual"]["relative"] < 0.5
+
+
+def _mean_speed_at_end(position: np.ndarray, period_s: float = 0.004, cycles: int = 20) -> float:
+    """Largest joint speed (rad/s) of a line fit over the last cycles: ~0 for a robot at rest
+    (the simulated current noise moves a held joint by a few mrad/s)."""
+    t = np.arange(cycles) * period_s
+    return float(np.max(np.abs(np.polyfit(t, position[-cycles:], 1)[0])))
+
+
+def test_a_drive_fault_over_vcan0_stops_the_robot_and_finishes_the_log(
+    tmp_path: Path, trajectory: Path
+) -> None:
+    """An EMCY injected on node 3 one simulated second in: exit 1 and the log finished, with the
+    fault as its last event (the drives' quick stop itself is checked on the simulated truth by
+    tests/acquire; a subprocess shows only its log)."""
+    folder = tmp_path / "fault"
+    folder.mkdir()
+    fault = '[[simulation.fault]]\nkind = "emcy"\nnode = 3\nat_s = 1.0'
+    cfg = write_config(folder / "acquire.toml", "socketcan", "vcan0", fault)
+    out = folder / "run.mcap"
+    cmd = [sys.executable, "-m", "drivegain.cli", "acquire", "--config", str(cfg)]
+    cmd += ["--trajectory", str(trajectory), "--out", str(out)]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=ACQUIRE_TIMEOUT_S)
+    assert proc.returncode == 1, proc.stdout + proc.stderr
+    log = read_run(out)
+    assert not log.truncated
+    last = log.events[-1]  # the fault is the last event, named by node and EMCY code
+    assert last["node"] == 3 and last["level"] == "error" and "EMCY" in last["text"], last
+    assert 0.9 < log.t[-1] < 1.5  # the log ends at the fault, long before the run's end
+
+
+def test_sigterm_over_vcan0_brings_the_robot_to_rest(tmp_path: Path) -> None:
+    """SIGTERM in the middle of a long run: jerk-limited stop, exit 0, a finished log."""
+    folder = tmp_path / "sigterm"
+    folder.mkdir()
+    robot = load_robot(resource_path("tx40.toml"))
+    rng = np.random.default_rng(0)
+    a = rng.uniform(-0.3, 0.3, (robot.n, 2))
+    b = rng.uniform(-0.3, 0.3, (robot.n, 2))
+    q0 = np.array([0.1, -0.2, 0.3, 0.0, 0.4, 0.0])
+    long = save_trajectory(
+        folder / "long.json",
+        trajectory_document(FourierTrajectory(0.5, q0, a, b, 40), robot, {"cond": 0.0}),
+    )
+    cfg = write_config(folder / "acquire.toml", "socketcan", "vcan0")
+    out = folder / "run.mcap"
+    cmd = [sys.executable, "-m", "drivegain.cli", "acquire", "--config", str(cfg)]
+    cmd += ["--trajectory", str(long), "--out", str(out)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    part = out.with_name(out.name + ".part")
+    deadline = time.monotonic() + ACQUIRE_TIMEOUT_S
+    try:  # a few seconds of cycles flushed (the log is fsynced about every second)
+        while not (part.exists() and part.stat().st_size > 200_000):
+            assert proc.poll() is None, proc.communicate()[0]
+            assert time.monotonic() < deadline, "no cycles recorded"
+            time.sleep(0.5)
+        proc.send_signal(signal.SIGTERM)
+        output, _ = proc.communicate(timeout=ACQUIRE_TIMEOUT_S)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, output
+    log = read_run(out)
+    assert not log.truncated and log.t[-1] < 80.0
+    assert any("SIGTERM" in str(e.get("text", "")) for e in log.events), log.events[-5:]
+    assert _mean_speed_at_end(log.position) < 0.05
