@@ -5,7 +5,7 @@ PYTHON ?= python3
 VENV ?= .venv
 TEST_VENV ?= .venv-test
 
-.PHONY: demo test test-vcan bench clean
+.PHONY: demo test test-load test-vcan bench clean
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -40,6 +40,11 @@ test: $(TEST_VENV)/.installed
 	$(TEST_VENV)/bin/ruff format --check .
 	cd /tmp && $(CURDIR)/$(TEST_VENV)/bin/mypy --config-file $(CURDIR)/pyproject.toml -p drivegain
 	$(TEST_VENV)/bin/python -m pytest -q
+
+# Lockstep on a saturated machine (tests marked `load`): every core busy for minutes, so apart
+# from the default suite.
+test-load: $(TEST_VENV)/.installed
+	$(TEST_VENV)/bin/python -m pytest -q -m load
 
 # The SocketCAN tests (tests/vcan/) on a kernel vcan0 in a QEMU guest: the host kernel has no CAN.
 # Installs QEMU, can-utils and a Debian kernel on first use (root or sudo; cached in

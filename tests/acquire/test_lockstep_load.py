@@ -2,7 +2,8 @@
 
 In lockstep every supervision time-out counts the simulated clock the master shares with the
 simulated drives (drivers/simtime.py): a saturated machine makes a run slower, never different.
-These tests saturate both cores with two busy processes they start and stop themselves, and
+They run apart from the default suite (``make test-load``; CI runs it after ``make test``): they
+keep every core busy for minutes. These tests saturate both cores with two busy processes they start and stop themselves, and
 compare with the same run on the (otherwise) quiet machine: the same cycles, bit for bit.
 """
 
@@ -67,7 +68,7 @@ def _run(config: Path, trajectory: Path, out: Path):
     return log
 
 
-@pytest.mark.slow
+@pytest.mark.load
 def test_a_60_s_lockstep_acquisition_is_the_same_on_a_saturated_machine(
     tmp_path: Path, make_config: Callable[..., Path]
 ) -> None:
@@ -87,7 +88,7 @@ def test_a_60_s_lockstep_acquisition_is_the_same_on_a_saturated_machine(
         np.testing.assert_array_equal(getattr(loaded, name)[:shared], getattr(quiet, name)[:shared])
 
 
-@pytest.mark.slow
+@pytest.mark.load
 def test_the_demo_gives_the_same_gains_on_a_saturated_machine(tmp_path: Path) -> None:
     """The demo path (both runs over the mocked bus, then identification), on two periods of the
     shipped excitation to keep it short: the same identified gains, to the last bit."""
