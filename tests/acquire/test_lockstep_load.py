@@ -3,8 +3,9 @@
 In lockstep every supervision time-out counts the simulated clock the master shares with the
 simulated drives (drivers/simtime.py): a saturated machine makes a run slower, never different.
 They run apart from the default suite (``make test-load``; CI runs it after ``make test``): they
-keep every core busy for minutes. These tests saturate both cores with two busy processes they start and stop themselves, and
-compare with the same run on the (otherwise) quiet machine: the same cycles, bit for bit.
+keep every core busy for minutes. These tests saturate both cores with two busy processes they
+start and stop themselves, and compare with the same run on the (otherwise) quiet machine: the
+same cycles, bit for bit.
 """
 
 from __future__ import annotations
