@@ -32,7 +32,8 @@ from drivegain.excite.optimise import (
     plan_budget,
 )
 from drivegain.excite.plot import render_motion_png
-from drivegain.excite.trajectory import save_trajectory, trajectory_document, write_atomic
+from drivegain.excite.trajectory import save_trajectory, trajectory_document
+from drivegain.fileio import write_atomic
 
 log = logging.getLogger(__name__)
 

@@ -12,7 +12,6 @@ import numpy as np
 from drivegain.config.robot import Robot
 from drivegain.excite.limits import check_limits
 from drivegain.excite.motion import Motion, Phase, check_motion, plan_motion, plan_stop
-from drivegain.fileio import write_atomic
 from drivegain.formats.trajectory import (
     FORMAT_VERSION,
     ExcitationFile,
@@ -34,7 +33,6 @@ __all__ = [
     "plan_stop",
     "save_trajectory",
     "trajectory_document",
-    "write_atomic",
 ]
 
 

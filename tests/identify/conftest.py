@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,6 +17,7 @@ from drivegain.dynamics.base import BaseParameters
 from drivegain.dynamics.model import RobotModel, build_model
 from drivegain.formats.fourier import FourierTrajectory
 from drivegain.identify.blas import limited_blas_threads
+from drivegain.identify.convert import convert_csv
 from drivegain.identify.prepare import (
     PreparedRun,
     bases_for_forms,
@@ -159,3 +161,17 @@ def noisy_run(world: World) -> Simulate:
         )
 
     return make
+
+
+@pytest.fixture(scope="session")
+def real_log(tx40_real: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The real TX-40 recording (../shared) converted once to a log, as a user would."""
+    return convert_csv(
+        tx40_real / "pos_read_data.csv",
+        tx40_real / "curr_data.csv",
+        5000.0,
+        resource_path("tx40.toml"),
+        motor_side=True,
+        torque=True,
+        out=tmp_path_factory.mktemp("tx40-real") / "tx40-real.mcap",
+    )

@@ -20,7 +20,6 @@ from drivegain.dynamics.params import standard_names
 from drivegain.formats.logreader import read_run
 from drivegain.identify.consistent import pseudo_inertia_eigenvalues
 from drivegain.identify.consistent_report import ConsistentRequest
-from drivegain.identify.convert import convert_csv
 from drivegain.identify.export import exported_torque, load_exported
 from drivegain.identify.pipeline import IdentifyRequest, run_identify
 from drivegain.identify.prepare import bases_for_forms, filtered_derivatives
@@ -28,20 +27,6 @@ from drivegain.identify.signal import default_filter
 from drivegain.identify.synth import true_torque
 
 ROBOT = resource_path("tx40.toml")
-
-
-@pytest.fixture(scope="module")
-def real_log(tx40_real: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("tx40c") / "tx40-real.mcap"
-    return convert_csv(
-        tx40_real / "pos_read_data.csv",
-        tx40_real / "curr_data.csv",
-        5000.0,
-        ROBOT,
-        motor_side=True,
-        torque=True,
-        out=out,
-    )
 
 
 @pytest.fixture(scope="module")

@@ -21,7 +21,6 @@ import pytest
 
 from drivegain.config import resource_path
 from drivegain.config.robot import WristFriction
-from drivegain.identify.convert import convert_csv
 from drivegain.identify.pipeline import IdentifyRequest, run_identify
 
 ROBOT = resource_path("tx40.toml")
@@ -52,20 +51,6 @@ FRICTION_TOL = 0.15
 BAD_FIT_RESIDUAL = 0.12
 #: Between the published-quality (0.078) and the known-bad (0.12) residual of the README.
 FIT_RESIDUAL = 0.10
-
-
-@pytest.fixture(scope="module")
-def real_log(tx40_real: Path, tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("tx40") / "tx40-real.mcap"
-    return convert_csv(
-        tx40_real / "pos_read_data.csv",
-        tx40_real / "curr_data.csv",
-        5000.0,
-        ROBOT,
-        motor_side=True,
-        torque=True,
-        out=out,
-    )
 
 
 def test_real_tx40_case1(real_log: Path, tx40_real: Path, tmp_path: Path) -> None:
