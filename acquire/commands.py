@@ -92,6 +92,7 @@ def demo(args: argparse.Namespace) -> int:
         trajectory=getattr(args, "trajectory", None),
         bus_overrides=_overrides(args),
         robot=getattr(args, "robot", "tx40"),
+        plots=not getattr(args, "no_plots", False),
     )
     return 0
 

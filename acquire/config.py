@@ -2,6 +2,8 @@
 
 Paths of configuration files (``robot``, the simulation truth) are relative to the TOML file;
 runtime locations of the daemon (``socket``, ``output_dir``) are relative to the working directory.
+The raw CAN trace ``can_trace`` is relative to each run's log folder (see
+:mod:`drivegain.acquire.cantrace`).
 The only difference between a simulated and a real cell is ``[bus]`` (``virtual`` vs ``socketcan``)
 plus the ``[simulation]`` table: the acquisition code has no test branch.
 """
@@ -14,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from drivegain.acquire.cantrace import trace_name_problem
 from drivegain.acquire.supervision import Supervision
 from drivegain.config._toml import Table, read_root
 from drivegain.config.robot import Robot, load_robot
@@ -154,6 +157,8 @@ class AcquisitionSettings:
     ``heartbeat_timeout_s`` how long a drive's heartbeat may stay away;
     ``master_node_id`` and ``master_heartbeat_s`` the master's own heartbeat, which every drive
     is told to watch (0x1016, time-out three periods): a drive that misses it stops the robot.
+    ``can_trace`` names the raw CAN trace recorded beside every run's log (as written; resolved
+    per run by :func:`~drivegain.acquire.cantrace.run_trace_path`).
     """
 
     robot_path: Path = field(
@@ -241,6 +246,14 @@ class AcquisitionSettings:
             "periods without it",
         ),
     )
+    can_trace: Path | None = field(
+        default=None,
+        metadata=setting(
+            check=trace_name_problem,
+            doc="raw CAN trace of every run (.blf, .asc, .log...), relative to the run's log "
+            "folder; {log} is the log's name (--can-trace overrides it)",
+        ),
+    )
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -313,7 +326,8 @@ def load_acquisition_config(
         raise root.table("bus").error(
             "interface",
             f"a [simulation] runs on the virtual bus (drives in this process), {IPC_INTERFACE} "
-            f"(drives in a child process) or socketcan on a Linux vcan device, not "
+            f"(drives in a child process) or socketcan on a Linux vcan device (drives in a "
+            f"child process in realtime, in this one in lockstep), not "
             f"{bus.interface} channel {bus.channel!r}: simulated drives never go on a real bus",
         )
     daemon = load_table(DaemonSettings, root.table("daemon")) if root.has("daemon") else None

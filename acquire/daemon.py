@@ -34,6 +34,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from drivegain import __version__
+from drivegain.acquire.cantrace import can_trace
 from drivegain.acquire.config import AcquisitionConfig, DaemonSettings
 from drivegain.acquire.control import Client, ControlServer, RequestError, parse_request
 from drivegain.acquire.control import read_reply as read_reply
@@ -422,7 +423,11 @@ class Daemon:
         run = _ActiveRun(session=session, thread=threading.Thread(), stop=stop, out=out)
 
         def target() -> None:
-            run.outcome.update(run_session(session))
+            try:  # the trace ([acquisition] can_trace) opens a bus handle of its own per run
+                with can_trace(self.cfg.bus, prepared.request.can_trace):
+                    run.outcome.update(run_session(session))
+            except BaseException as exc:  # the trace could not be opened: the run never began
+                run.outcome.setdefault("error", exc)
 
         run.thread = threading.Thread(target=target, name="drivegain-cycle", daemon=True)
         self.active = run

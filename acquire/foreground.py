@@ -12,16 +12,15 @@ import threading
 from contextlib import nullcontext
 from typing import Any
 
-from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-from drivegain.acquire.cantrace import can_trace
 from drivegain.acquire.config import AcquisitionConfig
 from drivegain.acquire.recorder import discard_unrecorded, unwritable_log
 from drivegain.acquire.request import PreparedRun, RunRequest, prepare_run_interruptible
 from drivegain.acquire.rig import Rig, simulation_for_run
 from drivegain.acquire.session import RunResult, RunState, Session
 from drivegain.acquire.stop import StopRequest
+from drivegain.console import console as shared_console
 from drivegain.drivers.sim import SimConfig
 from drivegain.errors import OperatorStop
 
@@ -77,9 +76,9 @@ def run_foreground(
     sim = simulation
     if sim is None and cfg.simulation is not None:
         sim = simulation_for_run(cfg.simulation, request.payload, seed)
-    rig = Rig(cfg, simulation=sim)
-    # the trace opens before the drives boot: configuration and shutdown frames are in it too
-    with can_trace(cfg.bus, request.can_trace), rig as master:
+    # the rig records the trace: configuration and shutdown frames are in it too
+    rig = Rig(cfg, simulation=sim, trace=prepared.request.can_trace)
+    with rig as master:
         if stop.requested:
             raise OperatorStop(f"stopped by {stop.reason} before the drives were enabled")
         session = Session(
@@ -113,7 +112,7 @@ def _run_on_thread(
             BarColumn(),
             TextColumn("{task.fields[phase]:<10} t={task.completed:7.2f}/{task.total:.2f} s"),
             TimeElapsedColumn(),
-            console=Console(stderr=True),
+            console=shared_console(stderr=True),  # log lines go above the live bar
             transient=False,
         )
         if show

@@ -13,7 +13,9 @@ with SIGKILL leaves a ``.part`` file holding every complete chunk up to the last
 from __future__ import annotations
 
 import logging
+import math
 import queue
+import re
 import threading
 import time
 from collections.abc import Mapping
@@ -102,6 +104,29 @@ class EventRecord:
 
 
 _STOP = object()
+#: A decimal number as text ("802", "-1.5", "2e-05"); hex, "nan" and "inf" do not match.
+_NUMBER = re.compile(r"-?(?:0|[1-9][0-9]*)(?:\.[0-9]+)?(?:[eE][-+]?[0-9]+)?")
+
+
+def typed_fields(fields: Mapping[str, Any]) -> dict[str, Any]:
+    """Event fields with decimal text turned into JSON numbers.
+
+    The cycle statistics and some callers format their values as text (for the daemon's status
+    reply); in the log a number is a number, so tools can plot and filter it. Integers stay
+    integers; other text (node lists, reasons, state names) is kept as it is.
+    """
+    out: dict[str, Any] = {}
+    for key, value in fields.items():
+        if isinstance(value, str) and _NUMBER.fullmatch(value):
+            number: int | float
+            if any(c in value for c in ".eE"):
+                number = float(value)
+                out[key] = number if math.isfinite(number) else value
+            else:
+                out[key] = int(value)
+        else:
+            out[key] = value
+    return out
 
 
 class Recorder:
@@ -290,7 +315,7 @@ class Recorder:
                 node=item.node,
                 code=item.code,
                 text=item.text,
-                **dict(item.fields),
+                **typed_fields(item.fields),
             )
             self.written_events += 1
         else:  # pragma: no cover - only this module queues items

@@ -16,10 +16,10 @@ from __future__ import annotations
 
 import re
 import threading
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
-from drivegain.acquire.cantrace import check_trace_path
+from drivegain.acquire.cantrace import check_trace_path, run_trace_path
 from drivegain.acquire.checks import check_bus_load, check_excitation
 from drivegain.acquire.config import AcquisitionConfig
 from drivegain.acquire.stop import StopRequest
@@ -86,7 +86,8 @@ def prepare_run(cfg: AcquisitionConfig, request: RunRequest) -> PreparedRun:
     Raises
     ------
     InputError
-        A bad trajectory, payload, output path or label, or a bus that cannot carry the cycle.
+        A bad trajectory, payload, output path, trace name or label, or a bus that cannot carry
+        the cycle.
     """
     out = request.out
     if out.suffix != ".mcap":
@@ -94,8 +95,11 @@ def prepare_run(cfg: AcquisitionConfig, request: RunRequest) -> PreparedRun:
     for existing in (out, out.with_name(out.name + ".part")):
         if existing.exists():
             raise InputError("already exists (a log is never overwritten)", file=existing)
-    if request.can_trace is not None:
-        check_trace_path(request.can_trace)
+    # the command line's trace, else the configuration's beside this log (checked alike)
+    trace = run_trace_path(request.can_trace, cfg.can_trace, out)
+    if trace is not None:
+        check_trace_path(trace)
+        request = replace(request, can_trace=trace)
     if out.parent.exists() and not out.parent.is_dir():
         raise InputError("is not a directory", file=out.parent)
     robot = cfg.robot

@@ -15,6 +15,7 @@ from typing import Any
 
 import canopen
 
+from drivegain.acquire.cantrace import can_trace
 from drivegain.acquire.config import AcquisitionConfig
 from drivegain.drivers.bus import open_network
 from drivegain.drivers.clock import Clock
@@ -22,7 +23,7 @@ from drivegain.drivers.ipcbus import INTERFACE as IPC_INTERFACE
 from drivegain.drivers.master import DriveEvent, Master, MasterHeartbeat, Timeouts
 from drivegain.drivers.realtime import RealtimePolicy
 from drivegain.drivers.sim import SimConfig, SimulatedCell
-from drivegain.drivers.simprocess import SimulatedCellProcess
+from drivegain.drivers.simprocess import SimulatedCellProcess, drives_in_child_process
 
 log = logging.getLogger(__name__)
 
@@ -56,8 +57,10 @@ def realtime_policy(cfg: AcquisitionConfig) -> RealtimePolicy:
 class Rig:
     """The network, the optional simulated cell and the booted master of a configuration.
 
-    A simulated cell runs in this process on the ``virtual`` bus, or in a child process on the
-    ``drivegain-ipc`` bus (:mod:`drivegain.drivers.simprocess`), as ``[bus]`` says.
+    A simulated cell runs in this process on the ``virtual`` bus (and in lockstep on a vcan
+    device), or in a child process on the ``drivegain-ipc`` bus and in realtime on a vcan device
+    (:func:`~drivegain.drivers.simprocess.drives_in_child_process`), as ``[bus]`` and
+    ``[simulation] clock`` say.
 
     Parameters
     ----------
@@ -74,6 +77,11 @@ class Rig:
     timeouts
         The master's time limits (default: the library's, with ``cfg.tpdo_timeout_s`` and
         ``cfg.heartbeat_timeout_s``).
+    trace
+        Raw CAN trace to record from :meth:`open` to :meth:`close`
+        (:func:`~drivegain.acquire.cantrace.can_trace`): from before the simulated drives power
+        on (on ``drivegain-ipc``, whose server is their process, from just after), so every frame
+        of the run is in it, shutdown included.
 
     Use as a context manager, or call :meth:`open` and :meth:`close` (which never raises).
     """
@@ -84,8 +92,10 @@ class Rig:
         simulation: SimConfig | None = None,
         policy: RealtimePolicy | None = None,
         timeouts: Timeouts | None = None,
+        trace: Path | None = None,
     ):
         self.cfg = cfg
+        self.trace = trace
         self.simulation = simulation if simulation is not None else cfg.simulation
         self.policy = policy if policy is not None else realtime_policy(cfg)
         self.timeouts = (
@@ -98,6 +108,7 @@ class Rig:
         self.master: Master | None = None
         self.boot_events: list[DriveEvent] = []
         self._realtime: ExitStack | None = None
+        self._trace: ExitStack | None = None
 
     def open(self) -> Master:
         """Start the simulated drives (if any), connect, boot every drive.
@@ -113,15 +124,23 @@ class Rig:
             # are already shorter than a full collection
             self._realtime = ExitStack()
             self._realtime.enter_context(self.policy.process())
+            self._trace = ExitStack()
+            # the trace listens from before the drives power on, but on drivegain-ipc, whose
+            # server is the drives' process, from just after
+            trace_after_cell = cfg.bus.interface == IPC_INTERFACE
+            if not trace_after_cell:
+                self._trace.enter_context(can_trace(cfg.bus, self.trace))
             if self.simulation is not None:
                 sim = self.simulation
-                if cfg.bus.interface == IPC_INTERFACE:
+                if drives_in_child_process(cfg.bus, sim):
                     self.cell = SimulatedCellProcess(
                         cfg.robot, cfg.bus, sim, cfg.period_s, eds=cfg.eds, policy=self.policy
                     )
                 else:
                     self.cell = SimulatedCell(cfg.robot, cfg.bus, sim, cfg.period_s, eds=cfg.eds)
                 self.cell.start()
+            if trace_after_cell:
+                self._trace.enter_context(can_trace(cfg.bus, self.trace))
             self.network = open_network(cfg.bus)
             # in lockstep with the drives in this process, the master counts their simulated
             # time (every supervision time-out); otherwise the wall clock
@@ -165,18 +184,29 @@ class Rig:
             except Exception as exc:
                 log.error("disconnecting the network failed: %s", exc)
             self.network = None
+        if self.cfg.bus.interface == IPC_INTERFACE:
+            self._close_trace()  # before the drives go: on drivegain-ipc they are the bus
         if self.cell is not None:
             try:
                 self.cell.stop()
             except Exception as exc:
                 log.error("stopping the simulated drives failed: %s", exc)
             self.cell = None
+        self._close_trace()  # after the drives: their last heartbeats are in it
         if self._realtime is not None:
             try:
                 self._realtime.close()
             except Exception as exc:
                 log.error("leaving the realtime policy failed: %s", exc)
             self._realtime = None
+
+    def _close_trace(self) -> None:
+        if self._trace is not None:
+            try:
+                self._trace.close()
+            except Exception as exc:
+                log.error("closing the CAN trace failed: %s", exc)
+            self._trace = None
 
     def __enter__(self) -> Master:
         return self.open()

@@ -4,6 +4,7 @@ One command::
 
     python benchmarks/bench_acquire.py                 # 60 s realtime runs, 10-minute memory run
     python benchmarks/bench_acquire.py --duration 10 --memory-minutes 2   # shorter
+    python benchmarks/bench_acquire.py --baseline-ref [REF]   # lockstep acquire beside REF
 
 What it measures, each against a baseline taken in the same run on the same machine:
 
@@ -360,6 +361,41 @@ def simulated_clock(cycles: int, folder: Path) -> None:
     )
 
 
+def lockstep_against_baseline(ref: str, repeats: int, folder: Path) -> None:
+    """``drivegain acquire`` in lockstep (shipped simulated TX-40 and trajectory), whole
+    processes of this tree beside REF installed in a temporary venv (benchmarks/baseline.py)."""
+    from baseline import (
+        BaselineInstall,
+        best_of,
+        comparison_header,
+        comparison_line,
+        current_command,
+    )
+
+    from drivegain.config import resource_path
+
+    args = [
+        "acquire",
+        "--config",
+        str(resource_path("acquire-sim.toml")),
+        "--trajectory",
+        str(resource_path("tx40-excitation.json")),
+    ]
+    print(f"\nlockstep acquire, this tree beside {ref} (installing it offline)...", flush=True)
+    with BaselineInstall(ref) as base:
+        print(f"  done in {base.install_s:.0f} s: {base.check()}")
+        print(f"best of {repeats}, interleaved; ratio = baseline / now")
+        print(comparison_header())
+        now, then = best_of(
+            [
+                [*current_command("drivegain"), *args, "--out", str(folder / "now.mcap")],
+                [*base.command("drivegain"), *args, "--out", str(folder / "base.mcap")],
+            ],
+            repeats,
+        )
+        print(comparison_line("acquire, lockstep, shipped trajectory", now, then), flush=True)
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     p.add_argument("--duration", type=float, default=60.0, help="realtime excitation seconds")
@@ -382,10 +418,21 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--rt-priority", type=int, default=80, help="realtime: SCHED_FIFO priority, 0 = off"
     )
+    p.add_argument(
+        "--baseline-ref",
+        nargs="?",
+        const="c03ea6b",
+        metavar="REF",
+        help="instead: the whole lockstep acquire command beside REF's (default c03ea6b)",
+    )
+    p.add_argument("--repeats", type=int, default=1, help="--baseline-ref: runs of each")
     args = p.parse_args(argv)
     quiet_libraries()
     with tempfile.TemporaryDirectory(prefix="bench-acquire-") as tmp:
         folder = Path(tmp)
+        if args.baseline_ref:
+            lockstep_against_baseline(args.baseline_ref, args.repeats, folder)
+            return 0
         if "realtime" not in args.skip:
             realtime(args.duration, args.rates, folder, args.sim_host, args.rt_priority)
         if "lockstep" not in args.skip:

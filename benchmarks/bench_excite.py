@@ -1,6 +1,10 @@
 """Excitation optimisation of the TX-40: time to an optimised trajectory, cond against budget.
 
-Run: ``python benchmarks/bench_excite.py [--budgets 8,16,32,64] [--payload | --no-payload]``.
+Run: ``python benchmarks/bench_excite.py [--budgets 8,16,32,64] [--payload | --no-payload]``,
+or ``python benchmarks/bench_excite.py --baseline-ref [REF] [--repeats K]``: the whole command
+``drivegain excite --budget 1`` of this tree beside that of REF (default c03ea6b, the release
+before issue 19) installed in a temporary venv by the benchmark (benchmarks/baseline.py), with
+wall and CPU time and peak RSS, and whether both wrote the same trajectory.
 
 1. Gradient: one objective gradient by the chain rule through the regressor's state derivatives
    (what the optimiser uses) against plain finite differences of the objective (the baseline,
@@ -62,6 +66,45 @@ def gradient_ratio(settings: ExcitationSettings, repeats: int = 3) -> tuple[floa
     return min(base), min(ours), agree
 
 
+def compare_with_baseline(ref: str, repeats: int, budget: float = 1.0) -> None:
+    """``drivegain excite --budget 1`` of this tree beside REF's, whole processes."""
+    import json
+    import tempfile
+    from pathlib import Path
+
+    from baseline import (
+        BaselineInstall,
+        best_of,
+        comparison_header,
+        comparison_line,
+        current_command,
+    )
+
+    robot = str(resource_path("tx40.toml"))
+    with tempfile.TemporaryDirectory(prefix="bench-excite-") as tmp:
+        work = Path(tmp)
+        print(f"installing {ref} in a temporary venv (offline)...", flush=True)
+        with BaselineInstall(ref) as base:
+            print(f"  done in {base.install_s:.0f} s: {base.check()}")
+            print(f"best of {repeats}, interleaved; ratio = baseline / now")
+            print(comparison_header())
+            args = ["excite", "--robot", robot, "--budget", f"{budget:g}"]
+            now, then = best_of(
+                [
+                    [*current_command("drivegain"), *args, "--out", str(work / "now.json")],
+                    [*base.command("drivegain"), *args, "--out", str(work / "base.json")],
+                ],
+                repeats,
+            )
+            print(comparison_line(f"excite --budget {budget:g}", now, then))
+        try:
+            a = json.loads((work / "now.json").read_text())["fourier"]
+            b = json.loads((work / "base.json").read_text())["fourier"]
+            print(f"    same trajectory as the baseline: {a == b}")
+        except (OSError, KeyError, ValueError) as exc:
+            print(f"    trajectories not compared: {exc}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--budgets", default="8,16,32,64", help="budgets in s, comma-separated")
@@ -69,7 +112,18 @@ def main() -> None:
         "--payload", action=argparse.BooleanOptionalAction, default=True, help="WTLS criterion"
     )
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--baseline-ref",
+        nargs="?",
+        const="c03ea6b",
+        metavar="REF",
+        help="instead: drivegain excite --budget 1 of this tree beside REF's (default c03ea6b)",
+    )
+    parser.add_argument("--repeats", type=int, default=1, help="--baseline-ref: runs of each")
     args = parser.parse_args()
+    if args.baseline_ref:
+        compare_with_baseline(args.baseline_ref, args.repeats)
+        return
     budgets = [float(b) for b in args.budgets.split(",")]
     robot = load_robot(resource_path("tx40.toml"))
     payload = chi = None

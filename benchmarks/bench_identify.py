@@ -13,6 +13,10 @@ machines compare. Logs are written to a temporary folder first (not timed).
 
 Usage: python benchmarks/bench_identify.py [--quick] [--keep DIR]
        python benchmarks/bench_identify.py --study SEEDS   (coverage and σ studies)
+       python benchmarks/bench_identify.py --baseline-ref [REF] [--quick] [--repeats K]
+           whole ``drivegain identify`` commands of this tree beside those of REF (default
+           c03ea6b, the release before issue 19), installed in a temporary venv by the
+           benchmark (benchmarks/baseline.py): (a) and (c) above, wall and CPU time, peak RSS.
 """
 
 from __future__ import annotations
@@ -319,6 +323,99 @@ def sigma_study(seeds: int, seconds: float = 60.0) -> None:
         )
 
 
+def _real_log(work: Path, robot: str) -> Path | None:
+    """The real TX-40 recording converted to a log (None when the data is not there)."""
+    if not (SHARED / "pos_read_data.csv").is_file():
+        return None
+    from drivegain.identify.convert import convert_csv
+
+    real = work / "tx40-real.mcap"
+    if not real.exists():
+        convert_csv(
+            SHARED / "pos_read_data.csv",
+            SHARED / "curr_data.csv",
+            5000.0,
+            robot,
+            motor_side=True,
+            torque=True,
+            out=real,
+        )
+    return real
+
+
+def compare_with_baseline(ref: str, work: Path, quick: bool, repeats: int) -> None:
+    """Whole ``drivegain identify`` processes, this tree beside REF (see the module docstring)."""
+    from baseline import (
+        BaselineInstall,
+        best_of,
+        comparison_header,
+        comparison_line,
+        current_command,
+    )
+
+    from drivegain.config import resource_path
+
+    robot = str(resource_path("tx40.toml"))
+    payload = str(resource_path("payloads/calibrated-4590g.toml"))
+    cases: list[tuple[str, list[str], bool]] = []
+    real = _real_log(work, robot)
+    if real is None:
+        print("(a) skipped: ../shared/data/tx40-real not found")
+    else:
+        args = ["identify", "--robot", robot, "--unloaded", str(real), "--gains", "gear-ratios"]
+        cases.append(("(a) real TX-40, 45 000 samples", args, True))
+    if not quick:
+        a, b = work / "unloaded-600s-1000Hz.mcap", work / "loaded-600s-1000Hz.mcap"
+        if not (a.exists() and b.exists()):
+            print("writing the 2 x 600 s at 1 kHz logs (not timed)...", flush=True)
+            a, b = _write_sim_logs(work, 600.0, 1000.0, seed=600)
+        args = ["identify", "--robot", robot, "--unloaded", str(a), "--loaded", str(b)]
+        cases.append(("(c) 2 x 600 s at 1 kHz (1.2 M msgs)", [*args, "--payload", payload], False))
+    helptext = subprocess.run(
+        [*current_command("drivegain"), "identify", "--help"], capture_output=True, text=True
+    ).stdout
+    paper = ["--estimator", "paper"] if "--estimator" in helptext else []
+    print(f"installing {ref} in a temporary venv (offline)...", flush=True)
+    with BaselineInstall(ref) as base:
+        print(f"  done in {base.install_s:.0f} s: {base.check()}")
+        print(f"best of {repeats}, interleaved; ratio = baseline / now")
+        print(comparison_header())
+        for name, args, plots_too in cases:
+            out_now, out_base = ["--out", str(work / "out-now")], ["--out", str(work / "out-base")]
+            now, then = best_of(
+                [
+                    [*current_command("drivegain"), *args, *out_now],
+                    [*base.command("drivegain"), *args, *out_base],
+                ],
+                repeats,
+            )
+            print(comparison_line(name, now, then), flush=True)
+            same = _same_gains(work / "out-now", work / "out-base")
+            print(f"    same gains as the baseline (to 1e-9 relative): {same}")
+            if paper:  # this tree's default estimator is not REF's: the paper's, like for like
+                (like,) = best_of(
+                    [[*current_command("drivegain"), *args, *out_now, *paper]], repeats
+                )
+                print(comparison_line("    now with --estimator paper", like, then), flush=True)
+                same = _same_gains(work / "out-now", work / "out-base")
+                print(f"    same gains as the baseline (to 1e-9 relative): {same}")
+            if plots_too:
+                (fast,) = best_of(
+                    [[*current_command("drivegain"), *args, *out_now, *paper, "--no-plots"]],
+                    repeats,
+                )
+                print(comparison_line(f"    now {' '.join(paper)} --no-plots", fast, then))
+
+
+def _same_gains(a: Path, b: Path) -> bool:
+    try:
+        ga = [g["value"] for g in json.loads((a / "report.json").read_text())["gains"]]
+        gb = [g["value"] for g in json.loads((b / "report.json").read_text())["gains"]]
+    except (OSError, KeyError, ValueError):
+        return False
+    return bool(np.allclose(ga, gb, rtol=1e-9, atol=0.0))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true", help="skip case (c)")
@@ -329,10 +426,29 @@ def main() -> None:
         metavar="SEEDS",
         help="instead: coverage and σ studies over SEEDS noise seeds",
     )
+    parser.add_argument(
+        "--baseline-ref",
+        nargs="?",
+        const="c03ea6b",
+        metavar="REF",
+        help="instead: whole commands of this tree beside REF's (default c03ea6b)",
+    )
+    parser.add_argument("--repeats", type=int, default=1, help="--baseline-ref: runs of each")
     parser.add_argument("--child", nargs="+", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
         _child(args.child)
+        return
+    if args.baseline_ref:
+        work = args.keep or Path(tempfile.mkdtemp(prefix="bench-identify-"))
+        work.mkdir(parents=True, exist_ok=True)
+        try:
+            compare_with_baseline(args.baseline_ref, work, args.quick, args.repeats)
+        finally:
+            if not args.keep:
+                import shutil
+
+                shutil.rmtree(work, ignore_errors=True)
         return
     if args.study:
         coverage_study(args.study)

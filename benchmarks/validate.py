@@ -5,28 +5,36 @@ One command, seeded:
     python benchmarks/validate.py                 # the full study, writes docs/validation.md
     python benchmarks/validate.py --quick         # 10 seeds, 1-2 minutes
     python benchmarks/validate.py --seeds 40 --budget 600 --out /tmp/study
+    python benchmarks/validate.py --scheduler tcp://HOST:PORT   # the seeds on a Dask cluster
 
-1. Monte Carlo over noise seeds on the simulated TX-40 (simulated directly, no bus) at two torque
-   noise levels: the shipped optimised excitation (config/tx40-excitation.json) for run a
-   (unloaded), run b (4.59 kg payload) and run c (1.686 kg payload), torque noise entering
-   through the current references, encoder quantisation at the joint, then the normal filtering
-   and decimation path. Every estimator of :mod:`drivegain.identify.compare` runs on the same
-   prepared data; per gain: bias, spread, coverage of the reported 2σ; payload errors; runtime.
+1. Monte Carlo over noise seeds on the simulated TX-40 (simulated directly, no bus): the shipped
+   optimised excitation (config/tx40-excitation.json) for run a (unloaded), run b (4.59 kg
+   payload) and run c (1.686 kg payload) at two torque noise levels and with current noise of
+   1 % of rated current, torque noise entering through the current references, encoder
+   quantisation at the joint; then random, non-optimised excitations (one per seed, 60 s) with
+   current or torque noise, and closed-loop runs by the simulated cell's drives (issue 17; at
+   most 30 seeds each). Then the normal filtering and decimation path. Every estimator of
+   :mod:`drivegain.identify.compare` runs on the same prepared data; per gain: bias, spread,
+   coverage of the reported 2σ, mean of z; payload errors and coverage; runtime; and issue
+   17's "Must show" targets, pass or fail.
 2. The paper's tables (2, 3, 4, 5) and Fig. 3 from our whole ``identify`` pipeline on MCAP logs
    of one seed, with the simulation truth beside them.
 3. The real TX-40 recording (../shared/data/tx40-real), Case 1, beside FIGAROH's published
    values, with both coupled-wrist friction forms (skipped with a message when absent).
 4. docs/validation.md with every table and figure (docs/validation/*.png, results.json).
 
-The Monte Carlo alternates noise levels seed by seed and stops starting new seeds when the
-budget is spent, so both levels always have the same number of seeds; the document says how
-many were run. The study itself is the library :mod:`drivegain.validation`; this script only
-reads the options.
+The Monte Carlo alternates scenarios seed by seed and stops starting new seeds when the
+budget is spent, so the scenarios have the same number of seeds (the capped ones at most their
+cap); the document says how many were run. The seeds run on one local process per CPU
+(``--workers``) or on a Dask cluster (``--scheduler``, issue 21): the same numbers either way.
+The study itself is the library :mod:`drivegain.validation`; this script only reads the
+options.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -66,18 +74,49 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument(
         "--real", default=str(SHARED_REAL), help="folder of the real TX-40 recording, or 'none'"
     )
+    parser.add_argument(
+        "--scheduler",
+        default=None,
+        help="address of a running Dask scheduler (tcp://HOST:PORT) to run the seeds on",
+    )
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        help="local worker processes without --scheduler (default: one per CPU)",
+    )
     args = parser.parse_args(argv)
     seeds = args.seeds if args.seeds is not None else (QUICK_SEEDS if args.quick else DEFAULT_SEEDS)
+    workers = args.workers if args.workers is not None else _cpus()
     try:
-        check_options(seeds, args.budget)
+        check_options(seeds, args.budget, args.scheduler, workers)
     except InputError as exc:
         parser.error(exc.message)  # exits with status 2, as for any bad option
     real = None if args.real == "none" else Path(args.real)
     cmd = "python benchmarks/validate.py" + (
         " " + " ".join(sys.argv[1:]) if argv is None and len(sys.argv) > 1 else ""
     )
-    run_study(seeds=seeds, budget_s=args.budget, out=args.out, real=real, command=cmd)
+    try:
+        run_study(
+            seeds=seeds,
+            budget_s=args.budget,
+            out=args.out,
+            real=real,
+            command=cmd,
+            scheduler=args.scheduler,
+            workers=workers,
+        )
+    except InputError as exc:  # e.g. a scheduler that does not answer
+        print(f"validate.py: error: {exc.message}", file=sys.stderr)
+        return 2
     return 0
+
+
+def _cpus() -> int:
+    """CPUs this process may run on."""
+    if hasattr(os, "sched_getaffinity"):
+        return len(os.sched_getaffinity(0))
+    return os.cpu_count() or 1
 
 
 if __name__ == "__main__":

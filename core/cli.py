@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import logging
 import math
 import os
 import signal
@@ -207,7 +206,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser = _Parser(
         prog="drivegain",
-        description="Identify robot drive gains and dynamics (IDIM-WTLS) from CANopen runs.",
+        description="Identify robot drive gains and dynamics (Gautier & Briot 2012) from "
+        "CANopen runs.",
         parents=[common],
     )
     parser.add_argument("--version", action="version", version=f"drivegain {__version__}")
@@ -225,6 +225,9 @@ def build_parser() -> argparse.ArgumentParser:
         choices=("tx40", "ur5"),
         default="tx40",
         help="the simulated robot: the Staubli TX-40 (coupled wrist) or a UR5",
+    )
+    p.add_argument(
+        "--no-plots", action="store_true", help="skip the identification's figures (faster)"
     )
     _bus_options(p)
     p.set_defaults(handler="demo")
@@ -333,14 +336,24 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--gains",
-        help="fix the gains and skip IDIM-WTLS: 'apriori' (the robot file's), 'gear-ratios', a "
-        "TOML with values = [...] (std = [...] optional), or a report.json; default: identify "
-        "them when --loaded is given, else use the a priori gains",
+        help="fix the gains and skip their estimation: 'apriori' (the robot file's), "
+        "'gear-ratios', a TOML with values = [...] (std = [...] optional), or a report.json; "
+        "default: identify them when --loaded is given, else use the a priori gains",
     )
     p.add_argument("--validate", type=Path, help="a third run with a second payload (Table 5)")
     p.add_argument("--validate-payload", type=Path, help="payload TOML of the --validate run")
     p.add_argument("--friction", choices=("physical", "paper"), help="coupled-wrist friction form")
-    p.add_argument("--alpha", type=POSITIVE, help="fix the V column weight instead of searching")
+    p.add_argument(
+        "--estimator",
+        choices=("ml", "paper"),
+        default="ml",
+        help="gain estimator: 'ml', maximum likelihood in current units with a noise model "
+        "estimated from the data and HAC standard deviations, or 'paper', the paper's "
+        "IDIM-WTLS with the column weight α searched on a grid",
+    )
+    p.add_argument(
+        "--alpha", type=POSITIVE, help="fix the V column weight instead of searching (paper only)"
+    )
     p.add_argument("--cutoff", type=POSITIVE, help="low-pass cut-off of positions, Hz")
     p.add_argument("--decimate", type=DECIMATE, help="decimation factor")
     p.add_argument(
@@ -365,6 +378,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--consistent-gains",
         choices=("fixed", "apriori-sign", "positive"),
         help="--consistent: keep the gains (default) or solve them with a sign constraint",
+    )
+    p.add_argument(
+        "--no-plots",
+        action="store_true",
+        help="skip the figures (faster; the report says they were not rendered)",
     )
     p.add_argument("--out", type=Path, required=True, help="report folder")
     p.set_defaults(handler="identify")
@@ -396,11 +414,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--current-reference 'iref{}' --current 'i{}' --robot tx40 --run unloaded --out a.mcap\n"
         "\nColumn lists: comma-separated names or 1-based column numbers, or one name with {} "
         "for the joint number 1..n. The log keeps the real time stamps.",
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+        formatter_class=_Help,  # layout as written, defaults shown
     )
     c.add_argument("--input", type=Path, required=True, help="CSV, or Parquet (.parquet)")
     c.add_argument("--time", required=True, help="time column (name or number)")
-    c.add_argument("--time-unit", default="s", choices=("s", "ms", "us", "ns"), help="default s")
+    c.add_argument(
+        "--time-unit", default="s", choices=("s", "ms", "us", "ns"), help="unit of the time column"
+    )
     c.add_argument("--position", required=True, help="position columns, rad")
     c.add_argument("--current-reference", required=True, help="current reference columns, A")
     c.add_argument("--current", help="measured current columns, A")
@@ -463,6 +483,9 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--samples", type=SAMPLES, default=300, help="random states for cond(W)")
     m.add_argument("--seed", type=SEED, default=0, help="seed of the random states")
     m.set_defaults(handler="model info")
+    from drivegain.cli_help import document
+
+    document(parser)  # every subcommand's description and examples (core/cli_help.py)
     return parser
 
 
@@ -474,11 +497,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except SystemExit as exc:  # --help, --version, or a bad option (already reported)
         return exc.code if isinstance(exc.code, int) else 2
     args.debug = getattr(args, "debug", False)
-    logging.basicConfig(
-        level=logging.DEBUG if args.debug else logging.INFO,
-        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
-        stream=sys.stderr,
-    )
+    from drivegain.console import install_logging
+
+    # through the progress display's console on a terminal (core/console.py)
+    install_logging(debug=args.debug)
     main_thread = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _terminate) if main_thread else None
     try:

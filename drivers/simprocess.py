@@ -1,8 +1,20 @@
-"""The simulated cell in a child process, attached to the master by the ``drivegain-ipc`` bus.
+"""The simulated cell in a child process, on the ``drivegain-ipc`` bus or a kernel vcan device.
 
 In-process, the simulated drives share the master's interpreter lock: their physics and SYNC
 handling (more than half the CPU time of a realtime run) delay the master's cycle thread, which
 real drives never do. Here they run in a process of their own, like separate devices on a cable.
+
+Which buses (:func:`drives_in_child_process`): ``drivegain-ipc`` always (the child is its
+server); python-can's ``socketcan`` on a Linux ``vcan`` device when the simulation runs in
+``realtime``: the child opens the configured interface itself, through the same
+:func:`~drivegain.drivers.bus.open_network` as the master, and the kernel carries the frames
+between the two sockets as between a controller and its drives. A realtime cell paces itself
+from the wall clock and the bus time stamps, which both processes share. ``lockstep`` on
+``socketcan`` keeps the drives in the master's process: lockstep's simulated clock counts the
+frames each side sends and handles, which only works within one process (see
+:mod:`drivegain.drivers.simtime`); a child would have to fall back to wall-clock time-outs, the
+one thing lockstep is there to avoid. (On ``drivegain-ipc`` a lockstep child does exactly that;
+that bus has no other use.)
 
 The child is ``python -m drivegain.drivers.simprocess FD`` (not a multiprocessing child, which
 would re-run the parent's main script), talking pickles over a socket pair. It ignores SIGINT
@@ -31,6 +43,7 @@ from types import TracebackType
 from drivegain import errors as errs
 from drivegain.config.robot import Robot
 from drivegain.drivers.bus import BusConfig
+from drivegain.drivers.clock import Clock
 from drivegain.drivers.ipcbus import INTERFACE
 from drivegain.drivers.realtime import RealtimePolicy
 from drivegain.drivers.sim import FaultRecord, SimConfig, SimulatedCell
@@ -46,6 +59,20 @@ _POLL_S = 0.2
 OUTLIVE_S = 20.0
 #: Cells whose child may still run (the test suite's leak check reads it).
 RUNNING: weakref.WeakSet[SimulatedCellProcess] = weakref.WeakSet()
+#: python-can's interface of kernel CAN devices, where realtime drives run in a child process.
+SOCKETCAN = "socketcan"
+
+
+def drives_in_child_process(bus_cfg: BusConfig, sim: SimConfig) -> bool:
+    """Whether the simulated drives of ``sim`` on ``bus_cfg`` run in a process of their own.
+
+    ``drivegain-ipc``: always. ``socketcan`` (a vcan device): in ``realtime``, as separate
+    devices; in ``lockstep`` they share the master's process and its simulated clock. The
+    in-process ``virtual`` bus: never (it connects buses of one process only).
+    """
+    if bus_cfg.interface == INTERFACE:
+        return True
+    return bus_cfg.interface == SOCKETCAN and sim.clock == Clock.REALTIME
 
 
 def _serve(
@@ -155,8 +182,10 @@ class SimulatedCellProcess:
     robot, sim, period_s, eds
         As for :class:`~drivegain.drivers.sim.SimulatedCell`.
     bus_cfg
-        The master's bus: ``interface = "drivegain-ipc"``, ``channel`` the socket path. The
-        child opens it as the server.
+        The master's bus: ``interface = "drivegain-ipc"``, ``channel`` the socket path (the
+        child opens it as the server); or ``socketcan`` on a vcan device with a ``realtime``
+        simulation (the child opens a socket of its own on the device, ``[bus.options]``
+        included).
     policy
         The realtime policy whose process part the child enters for its life (default: the
         garbage-collector freeze only); its cycle-thread part does not apply (no cycle loop).
@@ -175,18 +204,21 @@ class SimulatedCellProcess:
         eds: Path | None = None,
         policy: RealtimePolicy | None = None,
     ):
-        if bus_cfg.interface != INTERFACE:
+        if not drives_in_child_process(bus_cfg, sim):
             raise ConfigError(
-                f"a simulated cell in its own process needs the {INTERFACE} interface, "
-                f"not {bus_cfg.interface}"
+                f"a simulated cell in its own process needs the {INTERFACE} interface, or "
+                f"{SOCKETCAN} with a realtime simulation, not {bus_cfg.interface} with "
+                f"{sim.clock}: lockstep shares its simulated clock within one process only"
             )
         self.robot = robot
-        self.bus_cfg = BusConfig(
-            interface=INTERFACE,
-            channel=bus_cfg.channel,
-            bitrate=bus_cfg.bitrate,
-            extra={**bus_cfg.extra, "role": "server"},
-        )
+        if bus_cfg.interface == INTERFACE:
+            bus_cfg = BusConfig(
+                interface=INTERFACE,
+                channel=bus_cfg.channel,
+                bitrate=bus_cfg.bitrate,
+                extra={**bus_cfg.extra, "role": "server"},
+            )
+        self.bus_cfg = bus_cfg
         self.sim = sim
         self.period_s = period_s
         self.eds = eds

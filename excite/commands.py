@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+from collections.abc import Callable, Iterator
+from contextlib import AbstractContextManager, contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -106,9 +108,9 @@ def nominal_parameters(robot: Robot, path: Path | None) -> tuple[np.ndarray, str
 
 def excite(args: argparse.Namespace) -> int:
     """Handler of ``drivegain excite`` (options in :mod:`drivegain.cli`)."""
-    from rich.console import Console
+    from drivegain.console import console as shared_console
 
-    console = Console(stderr=True)
+    console = shared_console(stderr=True)  # shared with the log handler
     robot = load_robot(args.robot)
     payload: Payload | None = None
     if args.payload is not None:
@@ -174,13 +176,27 @@ def excite(args: argparse.Namespace) -> int:
     )
     result = _run_with_progress(robot, settings, console)
     fourier = result.fourier
-    try:
-        motion = plan_motion(robot, fourier, q_start, limits=limits)
-    except TrajectoryError as exc:
-        raise ExciteInputError(f"unreachable start pose: {exc}", key="--start") from None
-    # The whole motion at 1 kHz against the robot's own limits: cannot fail unless we have a bug.
-    check_motion(robot, motion)
-    metrics = evaluate_metrics(robot, fourier, payload=payload, chi_nominal=chi)
+    with _Phases(console) as phase:
+        with phase("approach and retreat (ruckig)"):
+            try:
+                motion = plan_motion(robot, fourier, q_start, limits=limits)
+            except TrajectoryError as exc:
+                raise ExciteInputError(f"unreachable start pose: {exc}", key="--start") from None
+        # The whole motion at 1 kHz against the robot's own limits: cannot fail unless we have
+        # a bug.
+        with phase("whole motion checked at 1 kHz"):
+            check_motion(robot, motion)
+        with phase("metrics over one period"):
+            metrics = evaluate_metrics(
+                robot, fourier, payload=payload, chi_nominal=chi, design=result.design
+            )
+        with phase(f"plot {plot_path.name}"):
+            png = render_motion_png(
+                robot,
+                motion,
+                limits,
+                title=f"{robot.name}: cond {metrics['cond']:.3g}, seed {seed}",
+            )
     metrics["random_median_cond"] = float(np.median(result.random_conds))
     metrics["random_starts"] = len(result.starts)
     doc = trajectory_document(
@@ -210,13 +226,40 @@ def excite(args: argparse.Namespace) -> int:
             },
         },
     )
-    png = render_motion_png(
-        robot, motion, limits, title=f"{robot.name}: cond {metrics['cond']:.3g}, seed {seed}"
-    )
     save_trajectory(out, doc)
     write_atomic(plot_path, png)
     _summary(console, result, metrics, out, plot_path, motion)
     return 0
+
+
+class _Phases:
+    """One progress line per phase after the optimisation (each shows its elapsed time, so no
+    phase of the command is silent)."""
+
+    def __init__(self, console: Any) -> None:
+        from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
+
+        self.progress = Progress(
+            SpinnerColumn(finished_text="[green]✓"),
+            TextColumn("{task.description}"),
+            TimeElapsedColumn(),
+            console=console,
+            transient=False,
+        )
+
+    def __enter__(self) -> Callable[[str], AbstractContextManager[None]]:
+        self.progress.__enter__()
+        return self._phase
+
+    def __exit__(self, *exc: object) -> None:
+        self.progress.__exit__(None, None, None)
+
+    @contextmanager
+    def _phase(self, description: str) -> Iterator[None]:
+        task = self.progress.add_task(description, total=1)
+        yield
+        self.progress.update(task, completed=1)
+        self.progress.stop_task(task)
 
 
 def _bounds(motion: Motion, phase: str) -> float:

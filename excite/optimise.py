@@ -32,7 +32,6 @@ from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wai
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.optimize
 
 from drivegain.config.excitation import DEFAULT_BASE_FREQUENCY_HZ, DEFAULT_HARMONICS
 from drivegain.config.payload import Payload
@@ -53,6 +52,10 @@ from drivegain.excite.criteria import (
 )
 from drivegain.excite.limits import ExcitationLimits, fourier_usage, grid_constraints
 from drivegain.formats.fourier import FourierTrajectory, basis
+from drivegain.scipyimport import import_scipy
+
+# scipy.optimize without its import-time docstring rewriting (see drivegain.scipyimport)
+scipy_optimize = import_scipy("scipy.optimize")
 
 log = logging.getLogger(__name__)
 
@@ -155,6 +158,8 @@ class OptimisationResult:
     skipped: int
     seconds: float
     metrics: dict[str, float] = field(default_factory=dict)
+    #: the criteria's model, built in this process while the workers ran (for the metrics)
+    design: DesignModel | None = None
 
     @property
     def random_conds(self) -> np.ndarray:
@@ -312,7 +317,7 @@ class Problem:
             "fun": lambda x: self.hvec - self.g @ x,
             "jac": lambda x: -self.g,
         }
-        res = scipy.optimize.minimize(
+        res = scipy_optimize.minimize(
             self.value,
             x0,
             jac=lambda x: self.value_and_grad(x)[1],
@@ -407,8 +412,10 @@ def optimise(
     def over_cap() -> bool:
         return cap is not None and time.perf_counter() - t0 > cap
 
+    design: DesignModel | None = None
     if in_process:
         prob = Problem(robot, settings)
+        design = prob.design
         for i in range(settings.starts):
             if i > 0 and over_cap():
                 skipped = settings.starts - i
@@ -432,6 +439,9 @@ def optimise(
                 while pending and len(running) < jobs:
                     i = pending.pop(0)
                     running[pool.submit(_run_in_worker, i)] = i
+                # The metrics need the same model (seconds of QR): built here while the workers
+                # start and run, instead of after them.
+                design = design_model(build_model(robot))
                 while running:
                     done, _ = wait(running, return_when=FIRST_COMPLETED)
                     for fut in sorted(done, key=lambda f: running[f]):
@@ -463,6 +473,7 @@ def optimise(
         starts=results,
         skipped=skipped,
         seconds=time.perf_counter() - t0,
+        design=design,
     )
 
 

@@ -40,7 +40,12 @@ def render_motion_png(
     t = np.arange(0.0, motion.duration_s + 0.5 / rate_hz, 1.0 / rate_hz)
     q, qd, qdd = motion.sample(t)
     n = robot.n
-    fig = Figure(figsize=(13, 2.0 * n + 1), layout="constrained")
+    # Fixed margins: the constrained layout solver took longer than the drawing (18 axes).
+    height = 2.0 * n + 1
+    fig = Figure(figsize=(13, height))
+    fig.subplots_adjust(
+        left=0.06, right=0.99, bottom=0.5 / height, top=1 - 0.8 / height, wspace=0.22, hspace=0.12
+    )
     axes = fig.subplots(n, 3, sharex=True, squeeze=False)
     hard = [
         (robot.lower, robot.upper),

@@ -1,7 +1,8 @@
 """The acquisition log: MCAP files per contracts.md §4 (``format_version`` 1).
 
 What writer and reader share lives here: channel names, the ``drivegain.run`` metadata record,
-the event levels and the ``/joint_states`` JSON schema. Writing is :mod:`.logwriter`, reading
+the event levels, the JSON schemas of ``/joint_states``, ``/drives/raw`` and ``/events``; the
+ROS 2 ``sensor_msgs/msg/JointState`` channel is :mod:`.ros2`. Writing is :mod:`.logwriter`, reading
 :mod:`.logreader`.
 
 Every problem with a file is a :class:`~drivegain.errors.DataError` whose one-line message names
@@ -25,6 +26,9 @@ FORMAT_VERSION = "1"
 JOINT_STATES = "/joint_states"
 RAW = "/drives/raw"
 EVENTS = "/events"
+#: the ROS 2 ``sensor_msgs/msg/JointState`` (CDR) twin of ``/joint_states``; its own topic, since
+#: ``/joint_states`` is the contract's JSON channel
+ROS2_JOINT_STATES = "/ros2/joint_states"
 METADATA_NAME = "drivegain.run"
 #: keys every ``drivegain.run`` metadata record must hold
 REQUIRED_KEYS = (
@@ -99,7 +103,13 @@ class RunMetadata:
             raise UsageError("extra metadata keys and values must be strings")
 
     def to_record(self) -> dict[str, str]:
-        """The string map stored in the MCAP metadata record."""
+        """The string map stored in the MCAP metadata record.
+
+        MCAP metadata records are maps of strings to strings (MCAP specification, "Metadata"),
+        so numbers are stored as their shortest exact text (``repr`` of the float) and lists as
+        JSON; readers parse them back. Numbers inside messages (``/events`` fields) are JSON
+        numbers.
+        """
         record = {
             "format_version": FORMAT_VERSION,
             "robot": self.robot,
@@ -137,8 +147,13 @@ def joint_state_schema(joint_names: Sequence[str]) -> dict[str, Any]:
         "current_reference": _vector_schema("current reference of each drive, A"),
         "current": _vector_schema("measured current of each drive, A"),
         "setpoint": _vector_schema("commanded joint positions, rad"),
+        "name": {
+            "type": "array",
+            "items": {"type": "string"},
+            "description": "joint names, the order of every vector (optional, contracts §4)",
+        },
     }
-    for name in VECTOR_FIELDS:
+    for name in (*VECTOR_FIELDS, "name"):
         props[name]["minItems"] = n
         props[name]["maxItems"] = n
     return {
@@ -151,25 +166,103 @@ def joint_state_schema(joint_names: Sequence[str]) -> dict[str, Any]:
     }
 
 
-RAW_SCHEMA: dict[str, Any] = {
-    "$schema": "https://json-schema.org/draft/2020-12/schema",
-    "title": "drivegain.DrivesRaw",
-    "description": "raw values as the drives sent them in one SYNC cycle, keyed by node",
-    "type": "object",
-    "properties": {"cycle": {"type": "integer"}, "raw": {"type": "object"}},
-    "required": ["cycle", "raw"],
+#: The per-joint integer arrays of a ``/drives/raw`` message, as the drives sent them (the
+#: acquisition's ``drivers.exchange.RAW_FIELDS``; a test keeps the two lists equal).
+RAW_FIELD_DOCS: dict[str, str] = {
+    "position": "position actual value 0x6064, encoder counts (motor side)",
+    "torque_demand": "torque demand 0x6074, per mille of the rated torque (the current reference)",
+    "current": "current actual value 0x6078, per mille of the rated current 0x6075",
+    "torque": "torque actual value 0x6077, per mille of the rated torque",
+    "statusword": "CiA 402 statusword 0x6041",
+    "error_register": "error register 0x1001",
+    "mode": "modes of operation display 0x6061",
+    "sync_counter": "SYNC counter echoed in the TPDOs (or that of the SYNC sent, if not echoed)",
+    "target": "target position sent in the RPDO, encoder counts (motor side)",
 }
+
+
+def raw_schema(joint_names: Sequence[str]) -> dict[str, Any]:
+    """JSON schema (draft 2020-12) of a ``/drives/raw`` message for these joints.
+
+    Each raw field is an array of integers with one value per joint, in ``joint_names`` order
+    (the drive of joint j; its node id is in the robot TOML attachment).
+    """
+    n = len(joint_names)
+    order = ", ".join(joint_names)
+    fields = {
+        name: {
+            "type": "array",
+            "items": {"type": "integer"},
+            "minItems": n,
+            "maxItems": n,
+            "description": f"{doc}; one per joint, ordered as {order}",
+        }
+        for name, doc in RAW_FIELD_DOCS.items()
+    }
+    return {
+        "$schema": "https://json-schema.org/draft/2020-12/schema",
+        "title": "drivegain.DrivesRaw",
+        "description": (
+            "one SYNC cycle as the drives sent it, before any conversion (counts, per-mille "
+            "values, statuswords), so every conversion can be redone; log time = SYNC time, ns"
+        ),
+        "type": "object",
+        "properties": {
+            "cycle": {
+                "type": "integer",
+                "minimum": 0,
+                "description": "SYNC cycle index since the run start (as in /joint_states)",
+            },
+            "raw": {
+                "type": "object",
+                "description": "raw field name -> one integer per joint",
+                "properties": fields,
+                # a drive profile may map more objects: still one integer per joint
+                "additionalProperties": {
+                    "type": "array",
+                    "items": {"type": "integer"},
+                    "minItems": n,
+                    "maxItems": n,
+                },
+            },
+        },
+        "required": ["cycle", "raw"],
+    }
+
 
 EVENT_SCHEMA: dict[str, Any] = {
     "$schema": "https://json-schema.org/draft/2020-12/schema",
     "title": "drivegain.Event",
-    "description": "EMCY, NMT or CiA 402 state change, fault, warning, operator stop, phase",
+    "description": (
+        "EMCY, NMT or CiA 402 state change, fault, warning, operator stop, phase change. Log "
+        "time = when the master recorded it, ns; events of one log time are in the order of "
+        "their MCAP sequence numbers. Numeric extra fields are JSON numbers."
+    ),
     "type": "object",
     "properties": {
-        "level": {"type": "string"},
-        "node": {"type": ["integer", "null"]},
-        "code": {"type": ["integer", "null"]},
-        "text": {"type": "string"},
+        "level": {"type": "string", "enum": [lv.value for lv in EventLevel]},
+        "node": {
+            "type": ["integer", "null"],
+            "description": "CANopen node id of the drive concerned, null for the whole cell",
+        },
+        "code": {
+            "type": ["integer", "null"],
+            "description": "EMCY or CiA 402 error code (0x1003 / 0x603F), null if none",
+        },
+        "text": {"type": "string", "description": "what happened, one line"},
+        "drive_time_ns": {
+            "type": "integer",
+            "description": (
+                "wall-clock time (Unix epoch, ns) at which the master noticed the drive's "
+                "message (EMCY frame, state change, heartbeat loss). The log time is the SYNC "
+                "time base: the wall clock in realtime (so the two differ by the queueing "
+                "between the CAN thread and the cycle loop), simulated time in lockstep (so "
+                "only this field says when it happened in the real world)"
+            ),
+        },
+        "phase": {"type": "string", "description": "approach, excitation or retreat"},
+        "cycle": {"type": "integer", "description": "SYNC cycle index the event refers to"},
     },
     "required": ["level", "node", "code", "text"],
+    "additionalProperties": True,
 }

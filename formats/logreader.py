@@ -2,8 +2,9 @@
 
 :func:`read_run` accepts any program's file that follows §4 (only ``/joint_states`` and the
 ``drivegain.run`` metadata are needed) and a ``.part`` whose writer was killed: it returns every
-complete message and says how many it recovered. Messages are streamed record by record into
-preallocated arrays, so memory stays at about the size of the arrays returned.
+complete message and says how many it recovered. Records are read by :mod:`.mcapscan` (no object
+per message) and ``/joint_states`` messages are decoded a batch at a time by :mod:`.jointstates`
+into preallocated arrays, so memory stays at about the size of the arrays returned.
 """
 
 from __future__ import annotations
@@ -13,15 +14,16 @@ import math
 import os
 from collections.abc import Iterator
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import IO, Any
 
 import numpy as np
 from mcap.reader import SeekingReader
-from mcap.records import Attachment, Channel, Footer, Message, Metadata, Schema
-from mcap.stream_reader import StreamReader
+from mcap.records import Attachment, Channel, Footer, Metadata
 
 from drivegain.errors import DataError
+from drivegain.formats.jointstates import BATCH, JointStateParser
 from drivegain.formats.log import (
     EVENTS,
     FORMAT_VERSION,
@@ -31,10 +33,11 @@ from drivegain.formats.log import (
     REQUIRED_VECTORS,
     VECTOR_FIELDS,
 )
+from drivegain.formats.mcapscan import FILLED, Buckets, records
 
 _MCAP_MAGIC = b"\x89MCAP0\r\n"
-# Rows per preallocated block when the message count is not known in advance.
-_BLOCK_ROWS = 16384
+# Channel kinds collected while reading (mcapscan buckets).
+_JS, _EV = 1, 2
 
 
 @dataclass
@@ -106,136 +109,6 @@ class RunLog:
         return int(self.cycle[-1] - self.cycle[0] + 1 - self.cycle.size)
 
 
-class _Columns:
-    """Preallocated blocks of rows for the arrays of a run (no per-message Python objects)."""
-
-    def __init__(self, n: int, capacity: int | None):
-        self.n = n
-        self.block_rows = capacity if capacity and capacity > 0 else _BLOCK_ROWS
-        self.blocks: list[dict[str, np.ndarray]] = []
-        self.used = 0  # rows used in the last block
-        self.count = 0
-
-    def _new_block(self) -> dict[str, np.ndarray]:
-        r, n = self.block_rows, self.n
-        block = {
-            "cycle": np.empty(r, dtype=np.int64),
-            "t": np.empty(r),
-            "log_time_ns": np.empty(r, dtype=np.int64),
-            **{name: np.empty((r, n)) for name in VECTOR_FIELDS},
-        }
-        self.blocks.append(block)
-        self.used = 0
-        return block
-
-    def row(self) -> tuple[dict[str, np.ndarray], int]:
-        if not self.blocks or self.used == self.block_rows:
-            self._new_block()
-        i = self.used
-        self.used += 1
-        self.count += 1
-        return self.blocks[-1], i
-
-    def arrays(self) -> dict[str, np.ndarray]:
-        if not self.blocks:
-            return {}
-        if len(self.blocks) == 1:
-            return {k: v[: self.used] for k, v in self.blocks[0].items()}
-        parts = [*self.blocks[:-1], {k: v[: self.used] for k, v in self.blocks[-1].items()}]
-        out = {}
-        for key in parts[0]:
-            out[key] = np.concatenate([b[key] for b in parts])
-            for b in self.blocks:  # free each block's column as soon as it is copied
-                b[key] = np.empty(0)
-        return out
-
-
-def _short(v: Any) -> str:
-    """A number for a message: huge integers are cut, not converted (that would overflow)."""
-    text = repr(v)
-    return text if len(text) <= 24 else f"{text[:12]}...({len(text)} digits)"
-
-
-def _is_number(v: Any) -> bool:
-    # type() rather than isinstance(): JSON true/false must not pass as 1/0
-    return type(v) is float or type(v) is int
-
-
-class _JointStateParser:
-    """Validates and stores ``/joint_states`` messages one at a time."""
-
-    def __init__(self, path: Path, capacity: int | None):
-        self.path = path
-        self.capacity = capacity
-        self.columns: _Columns | None = None
-        self.index = 0
-
-    def error(self, message: str) -> DataError:
-        return DataError(message, file=self.path)
-
-    def add(self, msg: Message) -> None:
-        k = self.index
-        where = f"/joint_states message {k}"
-        try:
-            obj = json.loads(msg.data)
-        except (ValueError, UnicodeDecodeError, RecursionError) as exc:
-            raise self.error(f"{where} is not valid JSON ({exc})") from None
-        if not isinstance(obj, dict):
-            raise self.error(f"{where} is not a JSON object")
-        cycle = obj.get("cycle")
-        if type(cycle) is not int:
-            raise self.error(f"{where}: field 'cycle' missing or not an integer")
-        where = f"/joint_states message {k} (cycle {cycle})"
-        t = obj.get("t")
-        if not _is_number(t):
-            raise self.error(f"{where}: field 't' missing or not a number")
-        if self.columns is None:
-            pos = obj.get("position")
-            if not isinstance(pos, list) or not pos:
-                raise self.error(f"{where}: field 'position' missing or not a list")
-            self.columns = _Columns(len(pos), self.capacity)
-        n = self.columns.n
-        block, i = self.columns.row()
-        for name, value in (("cycle", cycle), ("t", t), ("log_time_ns", msg.log_time)):
-            try:
-                block[name][i] = value
-            except OverflowError:
-                raise self.error(
-                    f"{where}: field '{name}' is out of range: {_short(value)}"
-                ) from None
-        for name in VECTOR_FIELDS:
-            values = obj.get(name)
-            if values is None and name not in REQUIRED_VECTORS:
-                block[name][i] = np.nan
-                continue
-            if not isinstance(values, list):
-                raise self.error(f"{where}: field '{name}' missing or not a list")
-            if len(values) != n:
-                raise self.error(
-                    f"{where}: field '{name}' has {len(values)} values, expected {n} joints"
-                )
-            row = block[name][i]
-            if all(type(v) is float or type(v) is int for v in values):
-                try:
-                    row[:] = values
-                    continue
-                except OverflowError:
-                    pass  # found below, element by element
-            for j, v in enumerate(values):
-                if v is None:
-                    row[j] = np.nan
-                elif not _is_number(v):
-                    raise self.error(f"{where}: {name}[{j}] is not a number: {v!r}")
-                else:
-                    try:
-                        row[j] = v
-                    except OverflowError:
-                        raise self.error(
-                            f"{where}: {name}[{j}] is out of range: {_short(v)}"
-                        ) from None
-        self.index += 1
-
-
 def _listed_messages(fh: IO[bytes], size: int) -> int | None:
     """Number of ``/joint_states`` messages in a finished file's statistics, else None."""
     if not _finished(fh, size):
@@ -262,31 +135,6 @@ def _finished(fh: IO[bytes], size: int) -> bool:
         return fh.read(len(_MCAP_MAGIC)) == _MCAP_MAGIC
     finally:
         fh.seek(0)
-
-
-def _iter_records(fh: IO[bytes], size: int, path: Path, finished: bool) -> Iterator[Any]:
-    """Records in file order; stops quietly at a cut (the reader can tell by the missing footer).
-
-    A file that ends with the closing magic was finished by its writer: a record that fails to
-    parse there is corruption, wherever it is (a corrupt record length can send the reader to
-    the end of the file). In a file without the closing magic, a failure at the end of the file
-    is the cut of a killed writer; anywhere else it is corruption.
-    """
-    reader = StreamReader(fh, validate_crcs=True)
-    records = reader.records
-    while True:
-        try:
-            record = next(records)
-        except StopIteration:
-            return
-        except Exception as exc:  # McapError, struct.error, zstd errors... from a record cut short
-            if fh.tell() >= size and not finished:
-                return
-            raise DataError(
-                f"corrupt MCAP data at byte {fh.tell()} of {size} ({type(exc).__name__}: {exc})",
-                file=path,
-            ) from None
-        yield record
 
 
 def read_run(path: str | Path, n_joints: int | None = None) -> RunLog:
@@ -338,35 +186,20 @@ def _read_stream(fh: IO[bytes], size: int, p: Path, n_joints: int | None) -> Run
     listed = _listed_messages(fh, size)
     # A message takes more than 16 bytes even compressed: a larger count is not to be trusted.
     capacity = None if listed is None else (min(listed, size // 16) or None)
-    parser = _JointStateParser(p, capacity)
+    parser = JointStateParser(p, capacity)
     meta: dict[str, str] | None = None
     attachments: dict[str, bytes] = {}
-    events: list[dict[str, Any]] = []
     channels: dict[int, Channel] = {}
     footer = False
-    for record in _iter_records(fh, size, p, finished):
-        if isinstance(record, Message):
-            ch = channels.get(record.channel_id)
-            if ch is None:
-                continue
-            if ch.topic == JOINT_STATES:
-                parser.add(record)
-            elif ch.topic == EVENTS and ch.message_encoding == "json":
-                try:
-                    ev = json.loads(record.data)
-                except (ValueError, RecursionError):
-                    ev = {"text": "(undecodable event)"}
-                if not isinstance(ev, dict):
-                    ev = {"text": str(ev)}
-                ev["log_time_ns"] = record.log_time
-                events.append(ev)
+    buckets: Buckets = {_JS: ([], []), _EV: ([], [])}
+    states = buckets[_JS]
+    for record in records(fh, size, p, finished, partial(_classify, p), buckets):
+        if record is FILLED:
+            if len(states[0]) >= BATCH:
+                parser.add_batch(states[0], states[1])
+                states[0].clear()
+                states[1].clear()
         elif isinstance(record, Channel):
-            if record.topic == JOINT_STATES and record.message_encoding != "json":
-                raise DataError(
-                    f"channel {JOINT_STATES} has message encoding "
-                    f"'{record.message_encoding}', expected 'json'",
-                    file=p,
-                )
             channels[record.id] = record
         elif isinstance(record, Metadata):
             if record.name == METADATA_NAME and meta is None:
@@ -375,8 +208,8 @@ def _read_stream(fh: IO[bytes], size: int, p: Path, n_joints: int | None) -> Run
             attachments[record.name] = bytes(record.data)
         elif isinstance(record, Footer):
             footer = True
-        elif isinstance(record, Schema):
-            pass
+    parser.add_batch(states[0], states[1])
+    events = [_event(data, log_time) for data, log_time in zip(*buckets[_EV], strict=True)]
     truncated = not footer
     if finished and truncated:
         raise DataError(
@@ -454,6 +287,32 @@ def _read_stream(fh: IO[bytes], size: int, p: Path, n_joints: int | None) -> Run
         messages_recovered=count,
         log_time_ns=arrays["log_time_ns"],
     )
+
+
+def _classify(p: Path, channel: Channel) -> int | None:
+    """The bucket a channel's messages go to (None: not read)."""
+    if channel.topic == JOINT_STATES:
+        if channel.message_encoding != "json":
+            raise DataError(
+                f"channel {JOINT_STATES} has message encoding "
+                f"'{channel.message_encoding}', expected 'json'",
+                file=p,
+            )
+        return _JS
+    if channel.topic == EVENTS and channel.message_encoding == "json":
+        return _EV
+    return None
+
+
+def _event(data: bytes, log_time: int) -> dict[str, Any]:
+    try:
+        ev = json.loads(data)
+    except (ValueError, RecursionError):
+        ev = {"text": "(undecodable event)"}
+    if not isinstance(ev, dict):
+        ev = {"text": str(ev)}
+    ev["log_time_ns"] = log_time
+    return ev
 
 
 def _joint_names(text: str, p: Path) -> list[str]:
@@ -549,14 +408,21 @@ def iter_channel(path: str | Path, topic: str) -> Iterator[tuple[int, dict[str, 
         size = os.fstat(fh.fileno()).st_size
         if fh.read(len(_MCAP_MAGIC)) != _MCAP_MAGIC:
             raise DataError("not an MCAP file (bad magic bytes)", file=p)
-        fh.seek(0)
-        channels: dict[int, str] = {}
-        for record in _iter_records(fh, size, p, _finished(fh, size)):
-            if isinstance(record, Channel):
-                channels[record.id] = record.topic
-            elif isinstance(record, Message) and channels.get(record.channel_id) == topic:
+        buckets: Buckets = {_JS: ([], [])}
+        datas, times = buckets[_JS]
+        finished = _finished(fh, size)
+        for record in records(fh, size, p, finished, partial(_of_topic, topic), buckets):
+            if record is not FILLED:
+                continue
+            for log_time, data in zip(times, datas, strict=True):
                 try:
-                    yield record.log_time, json.loads(record.data)
+                    yield log_time, json.loads(data)
                 except (ValueError, RecursionError) as exc:
-                    text = f"a {topic} message at log time {record.log_time} ns is not JSON"
+                    text = f"a {topic} message at log time {log_time} ns is not JSON"
                     raise DataError(f"{text} ({type(exc).__name__})", file=p) from None
+            datas.clear()
+            times.clear()
+
+
+def _of_topic(topic: str, channel: Channel) -> int | None:
+    return _JS if channel.topic == topic else None

@@ -30,9 +30,17 @@ from drivegain.formats.log import (
     JOINT_STATES,
     METADATA_NAME,
     RAW,
-    RAW_SCHEMA,
+    ROS2_JOINT_STATES,
     RunMetadata,
     joint_state_schema,
+    raw_schema,
+)
+from drivegain.formats.ros2 import (
+    MESSAGE_ENCODING,
+    SCHEMA_ENCODING,
+    SCHEMA_NAME,
+    SCHEMA_TEXT,
+    JointStateEncoder,
 )
 
 
@@ -67,6 +75,10 @@ class LogWriter:
         ``(name, media_type, data)`` stored byte for byte (robot TOML, payload TOML, trajectory).
     chunk_size
         Uncompressed chunk size, bytes.
+    effort_gains
+        Drive gains, N·m/A per joint, for the efforts of the ROS 2 JointState channel (current
+        reference × gain); ``None`` (the default) leaves them empty, as the channel's metadata
+        then says.
 
     Raises
     ------
@@ -81,6 +93,7 @@ class LogWriter:
         attachments: Sequence[tuple[str, str, bytes]] = (),
         *,
         chunk_size: int = DEFAULT_CHUNK_SIZE,
+        effort_gains: Sequence[float] | None = None,
     ):
         self.path = Path(path)
         self.part_path = self.path.with_name(self.path.name + ".part")
@@ -105,7 +118,7 @@ class LogWriter:
             "drivegain.JointState", "jsonschema", _json_bytes(joint_state_schema(meta.joint_names))
         )
         rs = self._writer.register_schema(
-            "drivegain.DrivesRaw", "jsonschema", _json_bytes(RAW_SCHEMA)
+            "drivegain.DrivesRaw", "jsonschema", _json_bytes(raw_schema(meta.joint_names))
         )
         es = self._writer.register_schema(
             "drivegain.Event", "jsonschema", _json_bytes(EVENT_SCHEMA)
@@ -113,7 +126,29 @@ class LogWriter:
         self._joint_states = self._writer.register_channel(JOINT_STATES, "json", js)
         self._raw = self._writer.register_channel(RAW, "json", rs)
         self._events = self._writer.register_channel(EVENTS, "json", es)
-        self._sequence = {self._joint_states: 0, self._raw: 0, self._events: 0}
+        self._ros2 = JointStateEncoder(meta.joint_names, effort_gains)
+        ros2_schema = self._writer.register_schema(
+            SCHEMA_NAME, SCHEMA_ENCODING, SCHEMA_TEXT.encode()
+        )
+        self._ros2_joint_states = self._writer.register_channel(
+            ROS2_JOINT_STATES,
+            MESSAGE_ENCODING,
+            ros2_schema,
+            metadata={
+                "position": "rad, joint side, as /joint_states",
+                "velocity": "empty: not measured",
+                "effort": "N·m: current_reference × the drive gains given to the writer"
+                if effort_gains is not None
+                else "empty: the log does not know the drive gains",
+            },
+        )
+        self._names = list(meta.joint_names)
+        self._sequence = {
+            self._joint_states: 0,
+            self._raw: 0,
+            self._events: 0,
+            self._ros2_joint_states: 0,
+        }
         self.messages = 0
         self.flush()
 
@@ -172,8 +207,19 @@ class LogWriter:
             "current_reference": _vector(current_reference, n, "current_reference"),
             "current": nulls if current is None else _vector(current, n, "current"),
             "setpoint": nulls if setpoint is None else _vector(setpoint, n, "setpoint"),
+            "name": self._names,
         }
         self._add(self._joint_states, log_time_ns, _json_bytes(msg))
+        # NaN stays NaN in CDR (float64), where JSON has null
+        self._add(
+            self._ros2_joint_states,
+            log_time_ns,
+            self._ros2.encode(
+                log_time_ns,
+                np.asarray(position, dtype=float),
+                np.asarray(current_reference, dtype=float),
+            ),
+        )
 
     def write_raw(self, *, cycle: int, log_time_ns: int, raw: Mapping[str, Any]) -> None:
         """Append the raw drive values of one cycle to ``/drives/raw`` (JSON-serialisable)."""
@@ -278,6 +324,7 @@ def write_run(
     log_time_ns: np.ndarray | None = None,
     attachments: Sequence[tuple[str, str, bytes]] = (),
     events: Sequence[Mapping[str, Any]] = (),
+    effort_gains: Sequence[float] | None = None,
 ) -> Path:
     """Write a whole run log at once (for tests, synthetic data and converters).
 
@@ -300,6 +347,8 @@ def write_run(
     events
         Event dicts with ``log_time_ns``, ``level``, ``node``, ``code``, ``text`` and any more
         keys.
+    effort_gains
+        Drive gains, N·m/A, for the efforts of the ROS 2 channel (see :class:`LogWriter`).
 
     Returns
     -------
@@ -322,7 +371,7 @@ def write_run(
             raise DataError(f"has {arr.shape[0]} samples, t has {n_samples}", key=name)
     cyc = np.arange(n_samples) if cycle is None else np.asarray(cycle, dtype=np.int64)
     lt = np.rint(t * 1e9).astype(np.int64) if log_time_ns is None else np.asarray(log_time_ns)
-    writer = LogWriter(path, meta, attachments)
+    writer = LogWriter(path, meta, attachments, effort_gains=effort_gains)
     try:
         ev = sorted(events, key=lambda e: int(e["log_time_ns"]))
         k = 0

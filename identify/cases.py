@@ -2,9 +2,11 @@
 
 The base parameters and every loaded run's 10 payload parameters are solved together by
 weighted least squares (Gautier & Briot 2012, §4), rows of joint j weighted by 1/σ_j from an OLS
-of joint j's equations alone (Gautier 1997); standard deviations by eq. (8)-(11) from the R
-factor, never by inverting WᵀW. Also the fit quality measures every case reports (R² and
-relative residual norm per joint).
+of joint j's equations alone (Gautier 1997). Standard deviations: a HAC sandwich
+(:mod:`drivegain.identify.hac`: the decimated equation errors are correlated in time) plus,
+when the gains come with a covariance, their uncertainty carried through the fit (the gains
+scale the torques V·g the fit explains); eq. (8)-(11)'s white-noise values stay in ``wls``.
+Also the fit quality measures every case reports (R² and relative residual norm per joint).
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from drivegain.identify.design import (
     stacked_factor,
 )
 from drivegain.identify.estimate import LSResult, ls_from_factor
+from drivegain.identify.hac import bartlett_lag, long_run_covariance, sandwich
 from drivegain.identify.weighting import joint_sigma
 
 
@@ -47,7 +50,8 @@ class CaseResult:
     gains
         Drive gains used, N·m/A.
     base_names, base, base_std
-        Base parameters, their values and standard deviations (eq. 10).
+        Base parameters, their values and standard deviations (HAC, with the gains'
+        uncertainty when given; eq. (10)'s are in ``wls.std``).
     payloads
         Identified payloads (one per loaded run).
     residual_norm
@@ -63,7 +67,9 @@ class CaseResult:
     rows
         Equations r.
     wls
-        The weighted solution with its statistics.
+        The weighted solution with its statistics (eq. 8-11, white noise assumed).
+    lag
+        Newey-West lag of the HAC standard deviations, samples.
     """
 
     name: str
@@ -80,6 +86,7 @@ class CaseResult:
     joint_relative: np.ndarray
     rows: int
     wls: LSResult
+    lag: int = 0
 
     def coefficients(self) -> tuple[np.ndarray, list[np.ndarray]]:
         return self.base, [p.values for p in self.payloads]
@@ -103,11 +110,28 @@ def fit_case(
     gains: np.ndarray,
     base_names: Sequence[str],
     factors: Sequence[np.ndarray] | None = None,
+    gain_cov: np.ndarray | None = None,
 ) -> CaseResult:
     """IDIM-WLS of the base parameters and every loaded run's 10 payload parameters.
 
     Rows of joint j are weighted by 1/σ_j from an OLS of joint j's equations alone
-    (Gautier 1997); standard deviations by eq. (8)-(11) from the R factor.
+    (Gautier 1997); standard deviations by :func:`case_covariance`.
+
+    Parameters
+    ----------
+    name
+        Name of the case.
+    designs
+        The runs fitted together.
+    gains
+        Drive gains, N·m/A.
+    base_names
+        Names of the base parameters.
+    factors
+        Per run, the R factors of every joint's rows (computed when omitted).
+    gain_cov
+        Covariance of ``gains`` ((N·m/A)², (n, n)), carried into the standard deviations;
+        None for gains taken as exact (a priori or given without σ).
     """
     gains = np.asarray(gains, dtype=float)
     if factors is None:
@@ -127,6 +151,8 @@ def fit_case(
     res_sq = joint_residual_sq(factors, transforms, x_aug)
     y_sq = joint_residual_sq(factors, transforms, np.append(np.zeros(res.x.size), 1.0))
     nb = designs[0].nb
+    cov, lag = case_covariance(designs, transforms, sigma, res.x, gain_cov)
+    std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     chi = res.x[:nb]
     payloads = []
     for d, s in zip(designs, slots, strict=True):
@@ -137,7 +163,7 @@ def fit_case(
             PayloadEstimate(
                 name=d.run.payload.name,
                 values=res.x[sl],
-                std=res.std[sl],
+                std=std[sl],
                 nominal=d.run.payload.values.copy(),
                 known=d.run.payload.known,
             )
@@ -149,7 +175,7 @@ def fit_case(
         gains=gains,
         base_names=list(base_names),
         base=chi,
-        base_std=res.std[:nb],
+        base_std=std[:nb],
         payloads=payloads,
         residual_norm=rho,
         relative_error=rho / float(np.sqrt(y_sq.sum())),
@@ -159,7 +185,54 @@ def fit_case(
         joint_relative=joint_rel,
         rows=rows,
         wls=res,
+        lag=lag,
     )
+
+
+def case_covariance(
+    designs: Sequence[Design],
+    transforms: Sequence[np.ndarray],
+    sigma: np.ndarray,
+    x: np.ndarray,
+    gain_cov: np.ndarray | None = None,
+) -> tuple[np.ndarray, int]:
+    """HAC covariance of an IDIM-WLS solution, plus the gains' share when they are uncertain.
+
+    With A the weighted columns and c = V·g/σ_j the weighted torques, x̂ = H⁻¹Aᵀc (H = AᵀA).
+    Per-sample scores ψ_k = Σ_j a_jk (a_jkᵀx̂ − c_jk) give the Newey-West covariance
+    (:mod:`~drivegain.identify.hac`), lag from the weighted residuals; the gains enter c
+    linearly, so ∂x̂/∂g = H⁻¹Aᵀ ∂c/∂g and their covariance adds J_g Cov(g) J_gᵀ (the gains
+    treated as independent of this fit's noise).
+
+    Returns
+    -------
+    covariance, lag
+        (p, p) in the order of ``x``; the lag in samples.
+    """
+    p = x.size
+    n = designs[0].n
+    x_aug = np.append(x, -1.0)
+    bread = np.zeros((p, p))
+    cross = np.zeros((p, n))
+    scores, resid = [], []
+    for d, t in zip(designs, transforms, strict=True):
+        blocks = np.stack([(d.block(j) @ t) / sigma[j] for j in range(n)], axis=1)
+        a = blocks[:, :, :p]
+        e = blocks @ x_aug  # A x̂ − c per sample and joint
+        flat = a.reshape(-1, p)
+        bread += flat.T @ flat
+        scores.append(np.matmul(e[:, None, :], a)[:, 0, :])
+        resid.append(e)
+        # ∂c_j/∂g_m = kt[j, m] v_m / σ_j
+        dc = d.run.current[:, None, :] * d.kt[None, :, :] / sigma[None, :, None]
+        cross += flat.T @ dc.reshape(-1, n)
+    lag = bartlett_lag(resid)
+    rows = sum(d.rows for d in designs) * n
+    cov = sandwich(bread, long_run_covariance(scores, lag), rows, p)
+    if gain_cov is not None:
+        j_g = np.linalg.pinv(bread, hermitian=True) @ cross
+        cov = cov + j_g @ np.asarray(gain_cov, float) @ j_g.T
+    return cov, lag
 
 
 def predictions(

@@ -31,7 +31,12 @@ from drivegain.config.payload import PAYLOAD_PARAMS, Payload
 from drivegain.errors import IdentificationError, InputError
 from drivegain.identify.design import Design
 from drivegain.identify.estimate import ls_from_factor, r_factor, tls_from_factor
-from drivegain.identify.gains import identify_gains
+from drivegain.identify.gains import (
+    DEFAULT_ALPHA_GRID,
+    Estimator,
+    estimate_gains,
+    identify_gains,
+)
 
 #: Per-joint LS: a column whose distance to the span of the previously kept columns is below
 #: this fraction of its norm (after unit scaling) is left out as not identifiable from this
@@ -61,6 +66,9 @@ class GainEstimate:
         Whether the estimator's model has the coupled current matrix of eq. (21).
     details
         Diagnostics (α, iterations, ...).
+    gain_cov
+        Covariance of the gains, (N·m/A)², (n, n), when the method gives one (carried into the
+        Case 2 payload fits, :func:`~drivegain.identify.cases.fit_case`).
     """
 
     method: str
@@ -68,6 +76,7 @@ class GainEstimate:
     std: np.ndarray | None
     coupled: bool
     details: dict[str, float] = field(default_factory=dict)
+    gain_cov: np.ndarray | None = None
 
 
 def diagonal_design(d: Design) -> Design:
@@ -145,6 +154,7 @@ def wtls_gains(a: Design, b: Design, payload: Payload, apriori: np.ndarray) -> G
         gap, σ iterations, covariance block length (samples).
     """
     res = identify_gains(a, b, payload, np.asarray(apriori, dtype=float))
+    assert res.fit is not None  # the paper's estimator always has its WTLS fit
     coupled = not np.allclose(a.kt, np.eye(a.n))
     return GainEstimate(
         method="IDIM-WTLS",
@@ -153,11 +163,46 @@ def wtls_gains(a: Design, b: Design, payload: Payload, apriori: np.ndarray) -> G
         coupled=coupled,
         details={
             "alpha": res.fit.alpha,
+            # 1.0 when α ended at an end of the searched grid (the criterion chose nothing).
+            "alpha_at_edge": float(
+                res.fit.alpha <= min(DEFAULT_ALPHA_GRID) or res.fit.alpha >= max(DEFAULT_ALPHA_GRID)
+            ),
             "gap": res.fit.tls.gap,
             "sigma_iterations": float(res.fit.iterations),
             "block": float(res.block),
         },
+        gain_cov=_gain_block(res.covariance, a.nb, a.n),
     )
+
+
+def ours_gains(a: Design, b: Design, payload: Payload, apriori: np.ndarray) -> GainEstimate:
+    """The default estimator: maximum likelihood in current units (:mod:`~drivegain.identify.ml`).
+
+    Arguments as :func:`wtls_gains` (``apriori`` is unused: the search starts from a least
+    squares). Returns the gains (N·m/A) with HAC standard deviations and covariance;
+    ``details``: Newey-West lag (samples), search rounds, and the errors-in-variables test's
+    statistic and p-value.
+    """
+    res = estimate_gains(a, b, payload, np.asarray(apriori, dtype=float), estimator=Estimator.ML)
+    assert res.ml is not None and res.eiv is not None  # the ML branch always sets both
+    coupled = not np.allclose(a.kt, np.eye(a.n))
+    return GainEstimate(
+        method="ML",
+        gains=res.gains,
+        std=res.std,
+        coupled=coupled,
+        details={
+            "lag": float(res.ml.lag),
+            "rounds": float(res.ml.iterations),
+            "eiv_statistic": res.eiv.statistic,
+            "eiv_p": res.eiv.p_value,
+        },
+        gain_cov=_gain_block(res.covariance, a.nb, a.n),
+    )
+
+
+def _gain_block(cov: np.ndarray, nb: int, n: int) -> np.ndarray:
+    return np.asarray(cov[nb : nb + n, nb : nb + n])
 
 
 def tls_gains(a: Design, b: Design, payload: Payload, *, alpha: float = 1.0) -> GainEstimate:

@@ -13,13 +13,16 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from enum import StrEnum
 
 import numpy as np
 
 from drivegain.config.payload import PAYLOAD_PARAMS, Payload
 from drivegain.errors import IdentificationError, InputError
 from drivegain.identify.design import Design, ls_transform
+from drivegain.identify.eiv import EIVTest, eiv_test
 from drivegain.identify.estimate import ScaleError
+from drivegain.identify.ml import MLFit, ml_fit
 from drivegain.identify.weighting import joint_sigma
 from drivegain.identify.wtls import SIGMA_MAX_ITER, WTLSFit, wtls_covariance, wtls_fit
 
@@ -29,6 +32,17 @@ DEFAULT_ALPHA_GRID = tuple(float(a) for a in np.logspace(-4, 3, 15))
 GAP_WARN = 1.5
 #: Warn when a gain's relative standard deviation exceeds this, %.
 GAIN_RSD_WARN = 5.0
+
+
+class Estimator(StrEnum):
+    """How the gains are estimated from the unloaded and the loaded run."""
+
+    #: Maximum likelihood in current units with an estimated noise covariance and a HAC
+    #: covariance (:mod:`drivegain.identify.ml`); the default.
+    ML = "ml"
+    #: The paper's IDIM-WTLS with the V-column weight α searched on a grid (§3).
+    PAPER = "paper"
+
 
 #: Progress callback: receives a one-line description of the step starting.
 Step = Callable[[str], None]
@@ -48,17 +62,19 @@ class GainIdentification:
     gains, std
         Identified drive gains (N·m/A) and one standard deviation each.
     fit
-        The WTLS solution at the chosen α.
+        The WTLS solution at the chosen α (``--estimator paper``; None for ``ml``).
     alpha_curve
         (α, weighted relative error norm) over the grid searched; empty when α was fixed.
     sigma_initial
-        σ_j from per-joint OLS with the a priori gains (the paper's first weighting), N·m.
+        σ_j from per-joint OLS with the a priori gains (the paper's first weighting), N·m
+        (None for ``ml``).
     covariance
         Covariance of (χ, g, χ_uL) (sandwich estimate, see
         :func:`drivegain.identify.estimate.tls_covariance`).
     block, clusters
         Window length (samples) and number of clusters of the covariance estimate
-        (:func:`~drivegain.identify.wtls.wtls_covariance`).
+        (:func:`~drivegain.identify.wtls.wtls_covariance`); for ``ml`` the Newey-West lag
+        (samples) and 0.
     payload_names, payload_unknown, payload_std
         The payload parameters the WTLS identified along with the gains.
     warnings
@@ -66,13 +82,18 @@ class GainIdentification:
     failures
         (α, message) of every α of the search whose solve failed (reported, not only as gaps
         in ``alpha_curve``).
+    estimator
+        Which estimator produced the gains.
+    ml, eiv
+        For ``ml``: the likelihood fit (noise model, lag) and the errors-in-variables test of
+        plain least squares on the same data.
     """
 
     gains: np.ndarray
     std: np.ndarray
-    fit: WTLSFit
+    fit: WTLSFit | None
     alpha_curve: list[tuple[float, float]]
-    sigma_initial: np.ndarray
+    sigma_initial: np.ndarray | None
     covariance: np.ndarray
     block: int
     clusters: int
@@ -81,6 +102,9 @@ class GainIdentification:
     payload_std: np.ndarray
     warnings: list[str] = field(default_factory=list)
     failures: list[tuple[float, str]] = field(default_factory=list)
+    estimator: Estimator = Estimator.PAPER
+    ml: MLFit | None = None
+    eiv: EIVTest | None = None
 
     @property
     def alpha_flatness(self) -> float | None:
@@ -98,6 +122,68 @@ class GainIdentification:
     def rel_std_percent(self) -> np.ndarray:
         """Relative standard deviation of each gain, %."""
         return np.asarray(100.0 * self.std / np.abs(self.gains))
+
+
+def estimate_gains(
+    a: Design,
+    b: Design,
+    payload: Payload,
+    apriori: np.ndarray,
+    *,
+    estimator: Estimator = Estimator.ML,
+    alpha: float | None = None,
+    alpha_grid: Sequence[float] = DEFAULT_ALPHA_GRID,
+    step: Step = no_step,
+) -> GainIdentification:
+    """Drive gains from an unloaded and a loaded run by the chosen estimator.
+
+    ``a``, ``b``, ``payload``, ``apriori``, ``alpha``, ``alpha_grid`` and ``step`` are those of
+    :func:`identify_gains` (``apriori`` and α serve the paper's estimator only); ``estimator``
+    chooses :attr:`Estimator.ML` (default, :func:`~drivegain.identify.ml.ml_fit` and the
+    errors-in-variables test) or :attr:`Estimator.PAPER` (:func:`identify_gains`).
+
+    Raises
+    ------
+    InputError
+        ``alpha`` given with the ``ml`` estimator, or not a positive number.
+    IdentificationError
+        The data do not determine the gains.
+    """
+    if estimator is Estimator.PAPER:
+        return identify_gains(a, b, payload, apriori, alpha=alpha, alpha_grid=alpha_grid, step=step)
+    if alpha is not None:
+        raise InputError(
+            "α is a weight of the paper's estimator: use it with --estimator paper", key="alpha"
+        )
+    fit = ml_fit(a, b, payload, step=step)
+    step("errors-in-variables test")
+    test = eiv_test(fit, a, b, payload)
+    warnings: list[str] = []
+    if not fit.converged:
+        warnings.append(
+            f"maximum likelihood: Gauss-Newton did not settle in {fit.iterations} steps"
+        )
+    std = fit.gain_std
+    rsd = 100.0 * std / np.abs(fit.gains)
+    for j in np.flatnonzero(rsd > GAIN_RSD_WARN):
+        warnings.append(f"gain of joint {j + 1} is poorly determined (1σ = {rsd[j]:.3g} %)")
+    return GainIdentification(
+        gains=fit.gains,
+        std=std,
+        fit=None,
+        alpha_curve=[],
+        sigma_initial=None,
+        covariance=fit.covariance,
+        block=fit.lag,
+        clusters=0,
+        payload_names=fit.payload_names,
+        payload_unknown=fit.payload_unknown,
+        payload_std=fit.payload_std,
+        warnings=warnings,
+        estimator=Estimator.ML,
+        ml=fit,
+        eiv=test,
+    )
 
 
 def _refine_grid(grid: Sequence[float], best: int, points: int = 5) -> list[float]:

@@ -1,7 +1,8 @@
 """``drivegain identify``: logs in, drive gains, dynamic parameters and reports out.
 
 Reads the runs (:mod:`.logformat`), filters and decimates them (:mod:`.prepare`), runs the
-paper's procedure (:mod:`.procedure`) and writes ``report.json``, ``report.md`` and the plots.
+paper's procedure (:mod:`.procedure`) and writes ``report.json``, ``report.md``,
+``report.html`` and the plots.
 Everything is written into a temporary folder beside ``--out`` and moved into place only when
 complete: a failure leaves ``--out`` untouched.
 """
@@ -29,6 +30,7 @@ from drivegain.errors import IdentificationError, InputError
 from drivegain.identify import consistent_report as cr
 from drivegain.identify.blas import limited_blas_threads
 from drivegain.identify.diagnose import current_warnings, other_channel_hint
+from drivegain.identify.gains import Estimator
 from drivegain.identify.prepare import (
     PreparedRun,
     bases_for_forms,
@@ -78,13 +80,19 @@ class IdentifyRequest:
     validate: Path | None = None
     validate_payload: Path | None = None
     friction: str | None = None
+    estimator: str = "ml"  # --estimator: ml or paper (Estimator values)
     alpha: float | None = None
     cutoff: float | None = None
     decimate: int | None = None
     reference: Path | None = None
     progress: bool = True
+    plots: bool = True  # False: --no-plots, no figure is rendered (matplotlib not imported)
     consistent: cr.ConsistentRequest | None = None  # identify --consistent
     current: str = "reference"  # --current: reference or measured
+
+
+#: what the report says when ``--no-plots`` skipped the figures
+NO_PLOTS = "figures not rendered (--no-plots)"
 
 
 # --------------------------------------------------------------------------------------------
@@ -95,7 +103,6 @@ class _Display:
     """A rich progress display on stderr, shown only on a terminal."""
 
     def __init__(self, enabled: bool):
-        from rich.console import Console
         from rich.progress import (
             BarColumn,
             Progress,
@@ -105,7 +112,9 @@ class _Display:
             TimeElapsedColumn,
         )
 
-        console = Console(stderr=True)
+        from drivegain.console import console as shared_console
+
+        console = shared_console(stderr=True)  # the log handler's too: lines go above the bar
         self.progress = Progress(
             SpinnerColumn(),
             TextColumn("{task.description}"),
@@ -151,6 +160,15 @@ def _check_request(req: IdentifyRequest) -> None:
         raise InputError("a validation payload needs its run", key="--validate")
     if req.alpha is not None and not (math.isfinite(req.alpha) and req.alpha > 0):
         raise InputError(f"must be a positive number, got {req.alpha}", key="--alpha")
+    if req.estimator not in {e.value for e in Estimator}:
+        raise InputError(
+            f"must be one of {', '.join(e.value for e in Estimator)}, got {req.estimator!r}",
+            key="--estimator",
+        )
+    if req.alpha is not None and req.estimator != Estimator.PAPER:
+        raise InputError(
+            "α is a weight of the paper's estimator: add --estimator paper", key="--alpha"
+        )
     if req.cutoff is not None and not (math.isfinite(req.cutoff) and req.cutoff > 0):
         raise InputError(f"must be a positive number of Hz, got {req.cutoff}", key="--cutoff")
     if req.decimate is not None and req.decimate < 1:
@@ -378,7 +396,9 @@ def _run_identify(req: IdentifyRequest) -> IdentifyOutcome:
             validation=by_label.get("validation"),
         )
         task = display.progress.add_task("identification", total=None)
-        options = Options(friction=form, gains=given, alpha=req.alpha)
+        options = Options(
+            friction=form, gains=given, estimator=Estimator(req.estimator), alpha=req.alpha
+        )
         try:
             result = run_procedure(
                 problem, options, step=lambda s: display.progress.update(task, description=s)
@@ -396,10 +416,16 @@ def _run_identify(req: IdentifyRequest) -> IdentifyOutcome:
         doc = report_json(result, robot, infos, expressions)
         doc["method"]["apriori_from_gear_ratio"] = list(robot.apriori_from_gear_ratio)
         with _staging(req.out) as tmp:
-            from drivegain.identify.plots import write_plots
+            if req.plots:
+                from drivegain.identify.plots import write_plots
 
-            plots = write_plots(result, robot.joint_names, tmp)
+                plots = write_plots(result, robot.joint_names, tmp)
+            else:
+                plots = {}
+                doc["figures"] = NO_PLOTS
             md = markdown_report(doc, result, robot, infos, plots)
+            if not req.plots:
+                md += f"\n_{NO_PLOTS}._\n"
             if req.consistent is not None:
                 out_c = cr.run_consistent(req.consistent, problem, result)
                 doc["consistent"] = cr.consistent_json(out_c, problem, result)
@@ -409,6 +435,12 @@ def _run_identify(req: IdentifyRequest) -> IdentifyOutcome:
                 doc["reference"] = {"file": str(req.reference), "parameters": rows}
                 md += section
             (tmp / "report.md").write_text(md, encoding="utf-8")
+            # the same report as one self-contained file (figures embedded)
+            from drivegain.identify.html import html_report
+
+            (tmp / "report.html").write_text(
+                html_report(md, tmp, f"Drive gain identification: {robot.name}"), encoding="utf-8"
+            )
             # The files this identification wrote: a re-run into the folder removes what is
             # no longer produced (contracts §5, an added field).
             doc["files"] = sorted([*(p.name for p in tmp.iterdir()), "report.json"])
@@ -452,7 +484,10 @@ def _summary(outcome: IdentifyOutcome, robot_names: list[str]) -> str:
             f"coupled-wrist friction form fitting held-out data better: {better.value} "
             f"(by {100 * margin:.2g} %{'' if margin >= FORM_MARGIN else ', not meaningful'})"
         )
-    lines.append(f"wrote {outcome.out}/report.json, report.md and plots")
+    figures = "" if "figures" in doc else " and plots"
+    lines.append(f"wrote {outcome.out}/report.json, report.md, report.html{figures}")
+    if "figures" in doc:
+        lines.append(doc["figures"])
     return "\n".join(lines)
 
 
@@ -468,11 +503,13 @@ def identify_command(args: argparse.Namespace) -> int:
         validate=args.validate,
         validate_payload=args.validate_payload,
         friction=args.friction,
+        estimator=getattr(args, "estimator", None) or "ml",
         alpha=args.alpha,
         cutoff=args.cutoff,
         decimate=args.decimate,
         reference=getattr(args, "reference", None),
         progress=True,
+        plots=not getattr(args, "no_plots", False),
         consistent=cr.request_from_args(args),
         current=getattr(args, "current", None) or "reference",
     )

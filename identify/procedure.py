@@ -39,9 +39,10 @@ from drivegain.identify.crossval import CV_FRACTION, CrossValidation, cross_vali
 from drivegain.identify.design import Design, make_design
 from drivegain.identify.gains import (
     DEFAULT_ALPHA_GRID,
+    Estimator,
     GainIdentification,
     Step,
-    identify_gains,
+    estimate_gains,
     no_step,
 )
 from drivegain.identify.prepare import PreparedRun
@@ -92,8 +93,10 @@ class Options:
     gains
         Given gains (skip IDIM-WTLS), or None: identify when a loaded run exists, else use the
         robot's a priori gains.
+    estimator
+        How the gains are estimated (:class:`~drivegain.identify.gains.Estimator`).
     alpha
-        Fixed α, or None to search ``alpha_grid``.
+        Fixed α, or None to search ``alpha_grid`` (``paper`` estimator only).
     cv_fraction
         Held-out fraction for the cross-validation.
     compare_forms
@@ -102,6 +105,7 @@ class Options:
 
     friction: WristFriction = WristFriction.PHYSICAL
     gains: GivenGains | None = None
+    estimator: Estimator = Estimator.ML
     alpha: float | None = None
     alpha_grid: tuple[float, ...] = DEFAULT_ALPHA_GRID
     cv_fraction: float = CV_FRACTION
@@ -185,6 +189,14 @@ class ProcedureResult:
         return float(1.0 - errs[0] / errs[1]) if errs[1] > 0 else 0.0
 
 
+def _gain_cov(w: GainIdentification | None) -> np.ndarray | None:
+    """The gains' block of the estimator's covariance, (N·m/A)², or None."""
+    if w is None:
+        return None
+    nb = w.covariance.shape[0] - w.gains.size - w.payload_unknown.size
+    return np.asarray(w.covariance[nb : nb + w.gains.size, nb : nb + w.gains.size])
+
+
 def _source(run: PreparedRun) -> str | None:
     """The file a run came from, for error messages (None when it was built in memory)."""
     return run.source or None
@@ -265,18 +277,19 @@ def _run_procedure(problem: Problem, options: Options, step: Step) -> ProcedureR
         if b is not None:
             # Invariant, checked above: a loaded run always has its payload.
             assert b.run.payload is not None
-            wtls = identify_gains(
+            wtls = estimate_gains(
                 a,
                 b,
                 b.run.payload,
                 apriori,
+                estimator=options.estimator,
                 alpha=options.alpha,
                 alpha_grid=options.alpha_grid,
                 step=step,
             )
             warnings += wtls.warnings
             step("Case 2: IDIM-WLS with the identified gains")
-            case2 = fit_case("case2", main, wtls.gains, names, factors)
+            case2 = fit_case("case2", main, wtls.gains, names, factors, gain_cov=_gain_cov(wtls))
             gains_source, gains, gains_std = "identified", wtls.gains, wtls.std
         else:
             case2 = None
@@ -299,7 +312,9 @@ def _run_procedure(problem: Problem, options: Options, step: Step) -> ProcedureR
         designs["validation"] = c
         validation[case1.name] = fit_case(case1.name, [a, c], case1.gains, names)
         if case2 is not None:
-            validation["case2"] = fit_case("case2", [a, c], case2.gains, names)
+            validation["case2"] = fit_case(
+                "case2", [a, c], case2.gains, names, gain_cov=_gain_cov(wtls)
+            )
 
     step("Cross-validation")
     cv = cross_validate(main, final.gains, names, options.cv_fraction)

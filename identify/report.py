@@ -8,24 +8,24 @@ paper does.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-import numpy as np
-
 from drivegain.config.payload import PAYLOAD_PARAMS
 from drivegain.config.robot import Robot
 from drivegain.identify.cases import CaseResult, PayloadEstimate
+from drivegain.identify.gains import DEFAULT_ALPHA_GRID
 from drivegain.identify.procedure import ProcedureResult
+from drivegain.identify.report_ml import estimator_name, ml_json, ml_lines
+from drivegain.identify.reportfmt import PAYLOAD_KEYS
+from drivegain.identify.reportfmt import json_num as _num
+from drivegain.identify.reportfmt import short as _g
 from drivegain.identify.units import GAIN_UNIT, parameter_unit
 
 FORMAT_VERSION = 1
 #: Held-out residual norms closer than this fraction do not tell two friction forms apart.
 FORM_MARGIN = 0.01
-#: Keys of the payload parameters in report.json (contracts §5), by PAYLOAD_PARAMS position.
-PAYLOAD_KEYS = ("XX", "XY", "XZ", "YY", "YZ", "ZZ", "MX", "MY", "MZ", "mass")
 
 
 @dataclass(frozen=True)
@@ -43,14 +43,6 @@ class RunInfo:
     notes: list[str] = field(default_factory=list)
     time_base: Mapping[str, Any] | None = None
     current: str = "reference"
-
-
-def _num(x: float | np.floating[Any] | None) -> float | None:
-    """A JSON number (None for NaN/inf, which JSON cannot hold)."""
-    if x is None:
-        return None
-    v = float(x)
-    return v if math.isfinite(v) else None
 
 
 def _rsd(value: float, std: float | None) -> float | None:
@@ -81,8 +73,12 @@ def _base_json(case: CaseResult, expressions: Mapping[str, str]) -> list[dict[st
             "std": _num(s),
             "rel_std_percent": _rsd(float(v), float(s)),
             "expression": expressions.get(name, name),
+            # eq. (10)'s white-noise σ, beside the HAC one in "std" (docs/model.md)
+            "wls_std": _num(ws),
         }
-        for name, v, s in zip(case.base_names, case.base, case.base_std, strict=True)
+        for name, v, s, ws in zip(
+            case.base_names, case.base, case.base_std, case.wls.std[: case.base.size], strict=True
+        )
     ]
 
 
@@ -106,6 +102,9 @@ def _case_json(case: CaseResult, robot: Robot, expressions: Mapping[str, str]) -
             for j, name in enumerate(robot.joint_names)
         ],
         "rows": case.rows,
+        "covariance": "HAC (Newey-West, Bartlett kernel)"
+        + (" with the gains' covariance" if case.name == "case2" else ""),
+        "covariance_lag_samples": case.lag,
     }
 
 
@@ -152,8 +151,8 @@ def report_json(
     }
     w = result.wtls
     doc["method"] = {
-        "estimator": "IDIM-WTLS" if w is not None else "IDIM-WLS",
-        "alpha": None if w is None else _num(w.fit.alpha),
+        "estimator": estimator_name(w),
+        "alpha": None if w is None or w.fit is None else _num(w.fit.alpha),
         "samples": int(sum(result.samples.values())),
         "gains_source": result.gains_source,
         "parameters_estimator": "IDIM-WLS",
@@ -180,7 +179,9 @@ def report_json(
     if result.case2 is not None:
         cases["case2"] = _case_json(result.case2, robot, expressions)
     doc["cases"] = cases
-    if w is not None:
+    if w is not None and w.ml is not None:
+        doc["ml"] = ml_json(w, robot)
+    if w is not None and w.fit is not None and w.sigma_initial is not None:
         tls = w.fit.tls
         doc["wtls"] = {
             "alpha": _num(w.fit.alpha),
@@ -249,12 +250,6 @@ def report_json(
 # Markdown
 
 
-def _g(x: float | None, digits: int = 4) -> str:
-    if x is None or not math.isfinite(x):
-        return "–"
-    return f"{x:.{digits}g}"
-
-
 def _table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> list[str]:
     out = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     out += ["| " + " | ".join(r) + " |" for r in rows]
@@ -294,6 +289,10 @@ def markdown_report(
         f"- Samples used (after decimation): {m['samples']}"
         + (f"; α = {_g(m['alpha'])}" if m["alpha"] is not None else "")
         + ".",
+        "- " + _cases_sentence(result),
+        "- Uncertainties: a column or value marked 2σ is twice the standard deviation (about "
+        "95 % for Gaussian errors); %σ = 100·σ/|value| is one σ relative to the value, as in "
+        "the paper's tables.",
         "",
         "## Runs",
         "",
@@ -322,7 +321,9 @@ def markdown_report(
     for r in runs:
         lines += [f"- {r.label}: {note}" for note in r.notes]
     if result.warnings:
-        lines += ["", "## Warnings", ""] + [f"- {w}" for w in result.warnings]
+        lines += ["", "## Warnings", ""]
+        lines += ["A value written ± x in a warning is one σ; %σ is one σ relative.", ""]
+        lines += [f"- {w}" for w in result.warnings]
 
     lines += ["", "## Drive gains (Table 3)", ""]
     header = ["", *robot.joint_names]
@@ -444,13 +445,15 @@ def markdown_report(
             ],
         )
 
-    if result.wtls is not None:
+    if result.wtls is not None and result.wtls.ml is not None:
+        lines += ml_lines(result.wtls, robot)
+    if result.wtls is not None and result.wtls.fit is not None:  # the paper's WTLS was run
         w = result.wtls
+        assert w.fit is not None and w.sigma_initial is not None  # (narrowing, for mypy)
         t = w.fit.tls
         lines += ["", "## IDIM-WTLS diagnostics", ""]
         lines += [
-            f"- α = {_g(w.fit.alpha)} chosen by the weighted relative error norm "
-            f"({len(w.alpha_curve)} values tried; curve in `{plots.get('alpha', '–')}`)"
+            _alpha_sentence(result, plots)
             + (
                 ""
                 if w.alpha_flatness is None
@@ -461,7 +464,10 @@ def markdown_report(
             *[f"- α = {_g(a)} failed: {msg}" for a, msg in w.failures],
             f"- Two smallest singular values: {_g(float(t.singular_values[-2]))}, "
             f"{_g(float(t.singular_values[-1]))} (ratio {_g(t.gap)}); |δ| in the singular "
-            f"vector {_g(t.delta_component)}.",
+            f"vector {_g(t.delta_component)}. The gains come from the right singular vector of "
+            "the smallest one; the larger the gap (ratio) to the next, the better that vector, "
+            "and so the gains, are determined by the data (a ratio near 1 means two directions "
+            "fit almost equally well).",
             f"- σ_j (N·m) from per-joint OLS with the a priori gains: "
             f"{', '.join(_g(float(s), 3) for s in w.sigma_initial)}; after "
             f"{w.fit.iterations} WTLS iterations: "
@@ -492,5 +498,66 @@ def markdown_report(
     )
     if plots:
         lines += ["", "## Plots", ""]
-        lines += [f"![{name}]({path})" for name, path in plots.items()]
+        for name, path in plots.items():
+            lines += [f"![{name}]({path})", "", _caption(name, result), ""]
     return "\n".join(lines) + "\n"
+
+
+def _cases_sentence(result: ProcedureResult) -> str:
+    """What the cases of the tables are, in one sentence (their first appearance)."""
+    if result.case2 is not None:
+        return (
+            f"Cases: Case 1 (`{result.case1.name}`) fits the dynamic and payload parameters by "
+            "IDIM-WLS with the a priori drive gains, Case 2 (`case2`) with the gains identified "
+            "by IDIM-WTLS, so comparing them shows what identifying the gains changes."
+        )
+    return (
+        f"Cases: one case (`{result.case1.name}`), the dynamic and payload parameters fitted by "
+        f"IDIM-WLS with the gains used ({result.gains_source}); no Case 2, as the gains were "
+        "not identified."
+    )
+
+
+def _alpha_sentence(result: ProcedureResult, plots: Mapping[str, str]) -> str:
+    """How α was chosen, with the count split as the progress display shows it."""
+    w = result.wtls
+    assert w is not None and w.fit is not None
+    if not w.alpha_curve:
+        return f"- α = {_g(w.fit.alpha)} as given (not searched)"
+    tried = [a for a, _ in w.alpha_curve]
+    on_grid = sum(1 for a in tried if a in DEFAULT_ALPHA_GRID)
+    split = (
+        f"the {on_grid} of the log-spaced grid, then {len(tried) - on_grid} refined around the best"
+        if 0 < on_grid < len(tried)
+        else f"{len(tried)} values tried"
+    )
+    return (
+        f"- α = {_g(w.fit.alpha)} chosen as the smallest weighted relative error norm over "
+        f"{len(tried)} values ({split}; curve in `{plots.get('alpha', '–')}`)"
+    )
+
+
+def _caption(name: str, result: ProcedureResult) -> str:
+    """One paragraph under a figure: what it shows and how to read it."""
+    if name.startswith("torques_"):
+        run = name.removeprefix("torques_")
+        return (
+            f"Run `{run}`: per joint, the torque measured through the drives (current "
+            f"reference × {result.final.name} gains, V·g) and the one the identified model "
+            "computes (W·χ), N·m; under each joint their difference on its own, finer scale "
+            "with its RMS. A difference that looks like noise means the model explains the "
+            "motion; a pattern in it is unmodelled dynamics."
+        )
+    if name == "alpha":
+        return (
+            "The α curve: α weighs the measured-current columns of the WTLS matrix against "
+            "the model columns; the α with the smallest weighted relative error norm is used. "
+            "A flat curve means the identified gains hardly depend on α."
+        )
+    if name == "singular_values":
+        return (
+            "Singular values of the weighted WTLS matrix. The gains come from the singular "
+            "vector of the smallest one; the marked gap between the two smallest (their "
+            "ratio) says how well the data single out that vector: the larger, the better."
+        )
+    return ""

@@ -20,9 +20,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy import signal as sps
 
 from drivegain.errors import DataError, InputError, UsageError
+from drivegain.scipyimport import import_scipy
+
+# scipy.signal without its import-time docstring rewriting (most of its import time)
+sps = import_scipy("scipy.signal")
 
 #: order of the Chebyshev I low-pass :func:`scipy.signal.decimate` applies (its default)
 DECIMATE_IIR_ORDER = 8

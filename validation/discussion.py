@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from drivegain.validation.estimators import OURS
 from drivegain.validation.markdown import fmt, sigma_word
 from drivegain.validation.scenarios import COVERAGE_BAND, Scenario
 
@@ -34,10 +35,9 @@ def coverage_text(
         The pipeline run of :func:`~drivegain.validation.paper.pipeline_tables`.
     """
     lines = []
-    cov = {sc.key: summary[sc.key]["methods"]["wtls"] for sc in scen}
+    cov = {sc.key: summary[sc.key]["methods"][OURS] for sc in scen}
     inside = [COVERAGE_BAND[0] <= c["coverage_all"] <= COVERAGE_BAND[1] for c in cov.values()]
     zs = {k: float(np.mean(c["z_std"])) for k, c in cov.items()}
-    expected = 2 * _phi(2 / math.sqrt(factor)) - 1
     band = f"{100 * COVERAGE_BAND[0]:.0f}-{100 * COVERAGE_BAND[1]:.0f} %"
     verdict = (
         f"inside the {band} target in every scenario"
@@ -49,7 +49,8 @@ def coverage_text(
     lines.append(
         "Ours: pooled coverage "
         + ", ".join(f"{100 * c['coverage_all']:.1f} % ({k})" for k, c in cov.items())
-        + f": {verdict}; the nominal coverage of ±2σ is 95.4 %. The spread of "
+        + f": {verdict}; the nominal coverage of ±2σ is 95.4 % (a σ computed as for white "
+        f"errors would cover {100 * (2 * _phi(2 / math.sqrt(factor)) - 1):.1f} %). The spread of "
         "z = (ĝ − g)/σ̂, averaged over the joints, is "
         + ", ".join(f"{v:.2f} ({k})" for k, v in zs.items())
         + " (1 for an honest σ): our σ is "
@@ -59,52 +60,31 @@ def coverage_text(
     lines.append("")
     acf = tab["truth_error_acf"]
     ls_z = {sc.key: float(np.mean(summary[sc.key]["methods"]["global_ls"]["z_std"])) for sc in scen}
-    blocks = {sc.key: summary[sc.key]["block"] for sc in scen}
-    fixed = {k: c["coverage_if_scaled"] for k, c in cov.items()}
-    n_blocks = tab["samples"]["unloaded"] + tab["samples"]["loaded"]
-    p = tab["unknowns"]
     lines.append(
-        "Why: the decimated equation errors are not white. The decimation low-pass keeps "
-        "noise up to 0.8 of the new Nyquist frequency only, so the errors are band-limited and "
-        "correlated between neighbouring samples (autocorrelation at lags 1, 2, 3: "
+        "Why a plain σ would not do: the decimated equation errors are not white. The "
+        "decimation low-pass keeps noise up to 0.8 of the new Nyquist frequency only, so the "
+        "errors are band-limited and correlated between neighbouring samples (autocorrelation "
+        "at lags 1, 2, 3: "
         + ", ".join(f"{v:+.2f}" for v in acf)
         + ", mean over joints of the true parameters' equation errors in the run of the "
         "tables), and the regressors live at the trajectory's low frequencies, where the "
-        "noise density is about 1/0.8 of that of white noise of the same variance. Measured "
+        "noise density is higher than that of white noise of the same variance. Measured "
         "here on white noise put through the same decimation and projected on the "
-        f"trajectory's harmonics: variance factor {factor:.3f}, so any σ computed as for "
-        f"white errors is too small by √{factor:.3f} = {math.sqrt(factor):.3f} (predicted "
-        f"coverage of ±2σ: {100 * expected:.1f} %). The eq. (10) σ of the global WLS, which "
-        "takes the errors as white, has a z spread of "
+        f"trajectory's harmonics: variance factor {factor:.3f}, so a σ computed as for white "
+        f"errors is too small by √{factor:.3f} = {math.sqrt(factor):.3f}. The eq. (10) σ of "
+        "the global WLS, which takes the errors as white, has a z spread of "
         + ", ".join(f"{v:.2f} ({k})" for k, v in ls_z.items())
-        + "."
+        + " (it is also biased under current noise)."
     )
     lines.append("")
     lines.append(
-        "Our sandwich covariance is built to absorb such correlation by summing scores over "
-        "blocks of consecutive samples, but with the "
-        f"{tab['samples']['unloaded']} samples per run these {tab['run_seconds']:.0f} s runs "
-        f"keep and {p} unknowns it falls back to blocks of "
-        + ", ".join(f"{b['median']:.0f}" for b in blocks.values())
-        + " sample (median per scenario; the pipeline warns 'residuals of IDIM-WTLS are "
-        "correlated over more samples than the runs allow'), i.e. it treats the errors as "
-        f"white too. Its small-sample factor B/(B − p) = {n_blocks}/{n_blocks - p} = "
-        f"{n_blocks / (n_blocks - p):.2f} on the variance offsets part of the loss, which is "
-        "why ours is less optimistic than the LS σ; how much it offsets differs between the "
-        "scenarios, and this study does not separate that further. As a diagnostic only (not "
-        f"what the tool reports), our σ multiplied by {math.sqrt(factor):.3f} would cover "
-        + ", ".join(f"{100 * v:.1f} % ({k})" for k, v in fixed.items())
-        + "."
-    )
-    lines.append("")
-    lines.append(
-        "Not changed by this study (`identify/wtls.py` computes the covariance): a correlation "
-        "correction that does not need many blocks would make σ honest, e.g. a Newey-West "
-        "(Bartlett-weighted) estimate of the score covariance over a few lags, in place of "
-        "the block-1 fallback and its B/(B − p) factor; longer runs (more periods: 38 % of each "
-        "30 s run is trimmed as filter border) also let the block estimate work. The per-joint "
-        "LS σ of joint 5 is too small for another reason: it ignores the uncertainty of ĝ6, "
-        "which enters joint 5's known column."
+        "Ours accounts for it: its covariance is a HAC sandwich, the Newey-West (Bartlett) "
+        "long-run covariance of the per-sample scores with the lag chosen from the whitened "
+        "residuals' lag-1 autocorrelation, and the small-sample factor r/(r − p) "
+        '(docs/model.md, "Estimators"). The Case 2 payload parameters use the same sandwich '
+        "plus the gains' covariance carried through the fit. The per-joint LS σ of joint 5 is "
+        "too small for another reason: it ignores the uncertainty of ĝ6, which enters joint "
+        "5's known column."
     )
     return "\n".join(lines)
 
@@ -124,29 +104,26 @@ def findings_text(summary: dict[str, Any], scen: Sequence[Scenario], tab: dict[s
     m = st[main]
     L.append(
         f"1. **Equal torque noise on every joint ({', '.join(sc.key for sc in scen[:2])}).** "
-        "Our WTLS, the global WLS with the mass on the right-hand side and the unweighted TLS "
+        "Ours, the global WLS with the mass on the right-hand side and the unweighted TLS "
         "with the coupled current matrix give practically the same gains (ratio of their RMS "
         "error to ours: "
         + "; ".join(
-            f"{sc.key}: global WLS {st[sc.key]['global_ls']['ratio_to_wtls'][0]:.3g}, "
-            f"TLS {st[sc.key]['tls']['ratio_to_wtls'][0]:.3g}"
+            f"{sc.key}: global WLS {st[sc.key]['global_ls']['ratio_to_ours'][0]:.3g}, "
+            f"TLS {st[sc.key]['tls']['ratio_to_ours'][0]:.3g}"
             for sc in scen[:2]
         )
         + "). Two reasons: the "
-        "simulated torque noise has the same σ on every joint, so the row weights 1/σ_j are "
-        "all equal and weighting changes nothing; and the only errors in W are the encoder "
-        "quantum through the filters, so the errors are nearly all in the current column(s), "
-        "where LS and TLS agree when the noise is small against the signal. The α criterion "
-        "is flat on such data (the α chosen wanders over the whole grid, "
-        f"{100 * summary[main]['alpha']['at_grid_ends']:.0f} % of seeds at an end) and the "
-        "gains do not depend on it. These scenarios therefore cannot show the paper's "
-        "improvements; they show that ours loses nothing."
+        "simulated torque noise has the same σ on every joint and is small against the "
+        "signal, so weighting changes little and LS's errors-in-variables bias is below its "
+        "σ. The paper's α criterion is flat on such data (the α chosen wanders over the whole "
+        f"grid, {100 * summary[main]['alpha']['at_grid_ends']:.0f} % of seeds at an end); "
+        "ours has no weight to choose."
     )
     if len(scen) > 2:
         k3 = scen[2].key
         s3 = st[k3]
-        r_tls = s3["tls"]["ratio_to_wtls"]
-        r_gls = s3["global_ls"]["ratio_to_wtls"]
+        r_tls = s3["tls"]["ratio_to_ours"]
+        r_gls = s3["global_ls"]["ratio_to_ours"]
         bias = s3["global_ls"]["bias_pct"]
         L.append(
             f"2. **Unequal, larger noise ({k3}).** Here the row weights (and α) matter: the "
@@ -156,22 +133,22 @@ def findings_text(summary: dict[str, Any], scen: Sequence[Scenario], tab: dict[s
             f"({r_gls[0]:.3g} times our error), with a coverage of "
             f"{100 * s3['global_ls']['coverage_all']:.0f} %: the noisy currents are regressors "
             "in LS, whose errors-in-variables bias shrinks the V coefficients toward zero in "
-            "proportion to the noise power. TLS treats them as noisy and is not biased; that "
-            "is the reason for the paper's choice."
+            "proportion to the noise power. Ours has the currents on the left-hand side of its "
+            "model (eq. 21 solved for them), where their noise does no harm."
         )
-        pj, cad, ours = s3["per_joint"], s3["wtls_cad"], s3["wtls"]
+        pj, cad, ours = s3["per_joint"], s3["ours_cad"], s3[OURS]
         L.append(
             "3. **Per-joint LS (the older approach).** With all 10 payload parameters known it "
-            "scales each wrist joint directly, which our WTLS with the mass only cannot: there "
+            "scales each wrist joint directly, which ours with the mass only cannot: there "
             f"it is better on joints 4-6 in {k3} (RMS "
             f"{', '.join(fmt(v, 2) for v in pj['rmse_pct'][3:])} % against ours "
             f"{', '.join(fmt(v, 2) for v in ours['rmse_pct'][3:])} %). Given the same "
-            f"information, our WTLS is better than it on {_count_better(cad, pj)} of 6 joints "
+            f"information, ours is better than it on {_count_better(cad, pj)} of 6 joints "
             f"(RMS {', '.join(fmt(v, 2) for v in cad['rmse_pct'])} % against "
             f"{', '.join(fmt(v, 2) for v in pj['rmse_pct'])} %): the global problem shares the "
             "robot's parameters between joints, the per-joint one identifies a scaled copy "
             "per joint. In the equal-noise scenarios it is worse than ours overall "
-            f"({m['per_joint']['ratio_to_wtls'][0]:.3g} times our error in {main}). With the "
+            f"({m['per_joint']['ratio_to_ours'][0]:.3g} times our error in {main}). With the "
             "mass only it cannot scale joints 4-6 at all, and on a real robot the payload's "
             "CAD values are themselves uncertain."
         )

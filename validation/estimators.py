@@ -3,6 +3,9 @@
 Every estimator of :mod:`drivegain.identify.compare` runs on the same prepared data of a seed;
 each one's gains then serve a Case 2 payload fit (runs a + b and a + c), and the a priori gains
 a Case 1 fit, so the payload errors of every method come from the same data too.
+
+:data:`METHODS` lists ours first (key :data:`OURS`); the document and the statistics are generic
+over the list and compare every other method with ours.
 """
 
 from __future__ import annotations
@@ -21,13 +24,35 @@ from drivegain.identify.compare import (
     GainEstimate,
     diagonal_design,
     global_ls_gains,
+    ours_gains,
     per_joint_gains,
     tls_gains,
     wtls_gains,
 )
 from drivegain.identify.design import Design, make_design
-from drivegain.validation.scenarios import SCENARIOS, Scenario, scenario_rng
-from drivegain.validation.world import World, prepare, simulate_three
+from drivegain.identify.gains import DEFAULT_ALPHA_GRID
+from drivegain.validation.cell import closed_loop_three
+from drivegain.validation.scenarios import (
+    SCENARIOS,
+    Excitation,
+    Plant,
+    Scenario,
+    scenario_rng,
+    trajectory_rng,
+)
+from drivegain.validation.world import (
+    SimRun,
+    World,
+    prepare,
+    random_excitation,
+    simulate_three,
+    with_trajectory,
+)
+
+#: Key of our estimator in :data:`METHODS` (the reference of every comparison).
+OURS = "ours"
+#: Key of the paper's IDIM-WTLS with its α grid (its α and block length are recorded).
+PAPER = "wtls_paper"
 
 
 @dataclass(frozen=True)
@@ -64,6 +89,10 @@ def _wtls(a: Design, b: Design, w: World) -> GainEstimate:
     return wtls_gains(a, b, w.payload, w.robot.apriori_gains)
 
 
+def _ours(a: Design, b: Design, w: World) -> GainEstimate:
+    return ours_gains(a, b, w.payload, w.robot.apriori_gains)
+
+
 def _tls(a: Design, b: Design, w: World) -> GainEstimate:
     return tls_gains(a, b, w.payload)
 
@@ -76,14 +105,24 @@ def _global_ls(a: Design, b: Design, w: World) -> GainEstimate:
     return global_ls_gains(a, b, w.payload)
 
 
-def _wtls_cad(a: Design, b: Design, w: World) -> GainEstimate:
-    return wtls_gains(a, b, replace(w.payload, known=PAYLOAD_PARAMS), w.robot.apriori_gains)
+def _ours_cad(a: Design, b: Design, w: World) -> GainEstimate:
+    return ours_gains(a, b, replace(w.payload, known=PAYLOAD_PARAMS), w.robot.apriori_gains)
 
 
 METHODS: tuple[Method, ...] = (
     Method(
-        "wtls",
-        "IDIM-WTLS (ours)",
+        OURS,
+        "ours",
+        True,
+        True,
+        False,
+        _ours,
+        "maximum likelihood in current units (the model of eq. 21 solved for the currents), "
+        "noise covariance estimated with the parameters, coupled V; HAC σ (Newey-West)",
+    ),
+    Method(
+        PAPER,
+        "IDIM-WTLS, paper (α grid)",
         True,
         True,
         False,
@@ -132,13 +171,13 @@ METHODS: tuple[Method, ...] = (
         "ablation: the unweighted TLS with the coupled V",
     ),
     Method(
-        "wtls_cad",
-        "IDIM-WTLS, payload CAD known",
+        "ours_cad",
+        "ours, payload CAD known",
         True,
         True,
         True,
-        _wtls_cad,
-        "ablation: our WTLS with all 10 payload parameters known, the information the "
+        _ours_cad,
+        "ablation: our estimator with all 10 payload parameters known, the information the "
         "per-joint LS uses",
     ),
 )
@@ -162,7 +201,12 @@ class SeedResult:
     error_norms
         ``(‖ρ‖ N·m, ‖ρ‖/‖Y‖, σ_ρ)`` of the fit on runs a and b.
     alpha, block
-        α chosen by our WTLS and its covariance block length, samples.
+        α chosen by the paper's WTLS and its covariance block length, samples.
+    details
+        Each method's :attr:`GainEstimate.details` (α, grid and search diagnostics).
+    at_edge
+        Per method: whether a weight or α it searched ended at an end of its range (see
+        :func:`search_at_edge`).
     failures
         ``"Type: message"`` of the estimators that raised.
     """
@@ -179,46 +223,97 @@ class SeedResult:
     error_norms: dict[str, tuple[float, float, float]] = field(default_factory=dict)
     alpha: float = math.nan
     block: float = math.nan
+    details: dict[str, dict[str, float]] = field(default_factory=dict)
+    at_edge: dict[str, bool] = field(default_factory=dict)
     failures: dict[str, str] = field(default_factory=dict)
+
+
+def search_at_edge(details: dict[str, float]) -> bool:
+    """Whether an estimate's searched weight ended at an end of its search range.
+
+    An estimator says so itself with ``details["at_edge"]`` (non-zero: at an edge); otherwise an
+    ``alpha`` in the details is compared with the ends of the paper's grid
+    (:data:`~drivegain.identify.gains.DEFAULT_ALPHA_GRID`, relative tolerance 1e-4). Without
+    either, nothing was searched: ``False``.
+    """
+    if "at_edge" in details:
+        return bool(details["at_edge"])
+    alpha = details.get("alpha", math.nan)
+    if not math.isfinite(alpha):
+        return False
+    lo, hi = min(DEFAULT_ALPHA_GRID), max(DEFAULT_ALPHA_GRID)
+    return bool(alpha <= lo * 1.0001 or alpha >= hi * 0.9999)
+
+
+def seed_world(world: World, scenario: Scenario, seed: int) -> World:
+    """The world of one seed: ``world`` itself, or with the seed's random excitation."""
+    if scenario.excitation is Excitation.RANDOM:
+        return with_trajectory(world, random_excitation(world, trajectory_rng(scenario, seed)))
+    return world
+
+
+def seed_runs(world: World, scenario: Scenario, rng: np.random.Generator) -> list[SimRun]:
+    """Runs a, b, c of one seed, by exact tracking or by the closed-loop drives."""
+    if scenario.plant is Plant.CLOSED_LOOP:
+        return closed_loop_three(world, scenario, rng)
+    return simulate_three(world, scenario, rng)
 
 
 def run_seed(
     world: World, seed: int, scenario: Scenario, methods: Sequence[Method] = METHODS
 ) -> SeedResult:
-    """Simulate the three runs for one seed and run every estimator on the same data."""
+    """Simulate the three runs for one seed and run every estimator on the same data.
+
+    A random-excitation scenario draws the seed's trajectory first (the same for runs a, b
+    and c, from its own stream :func:`~drivegain.validation.scenarios.trajectory_rng`).
+    """
     rng = scenario_rng(scenario, seed)
-    prepared = [prepare(world, r) for r in simulate_three(world, scenario, rng)]
+    world = seed_world(world, scenario, seed)
+    prepared = [prepare(world, r) for r in seed_runs(world, scenario, rng)]
     bp, form, robot = world.base, world.form, world.robot
     coupled = [make_design(p, bp, form, robot) for p in prepared]
     diagonal = [diagonal_design(d) for d in coupled]
     names = list(bp.names)
     out = SeedResult(seed=seed, scenario=scenario.key)
 
-    def payload_fits(key: str, designs: list[Design], gains: np.ndarray) -> None:
+    def payload_fits(
+        key: str, designs: list[Design], gains: np.ndarray, gain_cov: np.ndarray | None = None
+    ) -> None:
         a, b, c = designs
-        fb = fit_case(key, [a, b], gains, names)
-        fc = fit_case(key, [a, c], gains, names)
+        fb = fit_case(key, [a, b], gains, names, gain_cov=gain_cov)
+        fc = fit_case(key, [a, c], gains, names, gain_cov=gain_cov)
         out.payload_b[key] = fb.payloads[0].values
         out.payload_b_std[key] = fb.payloads[0].std
         out.payload_c[key] = fc.payloads[0].values
         out.payload_c_std[key] = fc.payloads[0].std
         out.error_norms[key] = (fb.residual_norm, fb.relative_error, fb.sigma_rho)
 
+    # Methods sharing a run function and a current matrix share its result (an alias).
+    done: dict[tuple[int, bool], tuple[GainEstimate | str, float]] = {}
     for m in methods:
         designs = coupled if m.coupled else diagonal
-        t0 = time.perf_counter()
-        try:
-            est = m.run(designs[0], designs[1], world)
-        except Exception as exc:  # a failing estimator is a result of the study, not a crash
-            out.failures[m.key] = f"{type(exc).__name__}: {exc}"
+        memo = (id(m.run), m.coupled)
+        if memo not in done:
+            t0 = time.perf_counter()
+            result: GainEstimate | str
+            try:
+                result = m.run(designs[0], designs[1], world)
+            except Exception as exc:  # a failing estimator is a result of the study, not a crash
+                result = f"{type(exc).__name__}: {exc}"
+            done[memo] = (result, time.perf_counter() - t0)
+        est, seconds = done[memo]
+        if isinstance(est, str):
+            out.failures[m.key] = est
             continue
-        out.seconds[m.key] = time.perf_counter() - t0
+        out.seconds[m.key] = seconds
         out.gains[m.key] = est.gains
         out.std[m.key] = est.std
-        if m.key == "wtls":
+        out.details[m.key] = dict(est.details)
+        out.at_edge[m.key] = search_at_edge(est.details)
+        if m.key == PAPER:
             out.alpha = est.details.get("alpha", math.nan)
             out.block = est.details.get("block", math.nan)
-        payload_fits(m.key, designs, est.gains)
+        payload_fits(m.key, designs, est.gains, est.gain_cov)
     # Case 1: the a priori (manufacturer) gains, the true model.
     payload_fits("case1", coupled, robot.apriori_gains)
     return out
@@ -237,9 +332,10 @@ def monte_carlo(
     Parameters
     ----------
     world
-        The simulated robot.
+        The simulated robot; with ``executor``, also anything it resolves to one (a Dask
+        future of a scattered world: :mod:`~drivegain.validation.cluster`).
     seeds
-        Seeds per scenario at most.
+        Seeds per scenario at most (a capped scenario runs :meth:`Scenario.seeds` of them).
     deadline
         :func:`time.perf_counter` value after which no new seed starts, s.
     scenarios
@@ -252,7 +348,8 @@ def monte_carlo(
         submitted at once; the results are taken seed by seed, and past the deadline the
         seeds not yet taken are cancelled.
 
-    Scenarios alternate seed by seed, so a budget cut leaves them with equal seed counts.
+    Scenarios alternate seed by seed, so a budget cut leaves them with equal seed counts, except
+    that a scenario with a cap (:meth:`Scenario.seeds`) stops at its cap while the others go on.
     """
     if executor is not None:
         return _monte_carlo_on(executor, world, seeds, deadline, scenarios, progress)
@@ -263,7 +360,8 @@ def monte_carlo(
             progress(f"budget spent: stopping after {s} seeds per scenario")
             break
         for sc in scenarios:
-            results[sc.key].append(run_seed(world, s, sc))
+            if s < sc.seeds(seeds):
+                results[sc.key].append(run_seed(world, s, sc))
         if (s + 1) % 10 == 0 or s == 0:
             per = (time.perf_counter() - t_start) / (s + 1)
             progress(f"  seed {s + 1}/{seeds} ({per:.1f} s per seed, all scenarios)")
@@ -281,15 +379,18 @@ def _monte_carlo_on(
     """:func:`monte_carlo` with the seeds run by ``executor`` (same results, same order)."""
     results: dict[str, list[SeedResult]] = {sc.key: [] for sc in scenarios}
     t_start = time.perf_counter()
-    futures = [[executor.submit(run_seed, world, s, sc) for sc in scenarios] for s in range(seeds)]
+    futures = [
+        [(sc, executor.submit(run_seed, world, s, sc)) for sc in scenarios if s < sc.seeds(seeds)]
+        for s in range(seeds)
+    ]
     for s, row in enumerate(futures):
         if s > 0 and time.perf_counter() > deadline:
             progress(f"budget spent: stopping after {s} seeds per scenario")
             for later in futures[s:]:
-                for f in later:
+                for _, f in later:
                     f.cancel()
             break
-        for sc, f in zip(scenarios, row, strict=True):
+        for sc, f in row:
             results[sc.key].append(f.result())
         if (s + 1) % 10 == 0 or s == 0:
             per = (time.perf_counter() - t_start) / (s + 1)

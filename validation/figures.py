@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from drivegain.config.payload import PAYLOAD_PARAMS
-from drivegain.validation.estimators import METHODS, Method, SeedResult
+from drivegain.validation.estimators import METHODS, OURS, Method, SeedResult
 from drivegain.validation.scenarios import COVERAGE_BAND, SCENARIOS
 from drivegain.validation.statistics import z_scores
 from drivegain.validation.world import World
@@ -106,7 +106,7 @@ def figure_coverage(
         ax.set_ylabel("truth in ±2σ %")
         ax.set_title(sc.label, fontsize=9)
         ax2 = axes[row, 1]
-        z = z_scores(results[sc.key], "wtls", g).ravel()
+        z = z_scores(results[sc.key], OURS, g).ravel()
         ax2.hist(
             z,
             bins=np.linspace(-5, 5, 41),
@@ -117,7 +117,7 @@ def figure_coverage(
         )
         u = np.linspace(-5, 5, 201)
         ax2.plot(u, np.exp(-u * u / 2) / math.sqrt(2 * math.pi), "k", lw=0.8, label="N(0, 1)")
-        ax2.set_title(f"z of IDIM-WTLS, std {z.std():.2f}", fontsize=9)
+        ax2.set_title(f"z of ours, std {z.std():.2f}", fontsize=9)
         if row == 0:
             ax2.legend(fontsize=6.5)
     handles, labels = axes[0, 0].get_legend_handles_labels()

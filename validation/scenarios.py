@@ -8,15 +8,30 @@ position ``k`` of :data:`SCENARIOS` draws from ``numpy.random.default_rng((ROOT_
 from __future__ import annotations
 
 from dataclasses import dataclass
+from enum import Enum
 
 import numpy as np
 
 from drivegain.errors import InputError
 
 
+class Excitation(Enum):
+    """Which trajectory the three runs of a seed follow."""
+
+    SHIPPED = "shipped"  # the optimised excitation config/tx40-excitation.json, every seed
+    RANDOM = "random"  # a random, non-optimised Fourier series drawn per seed
+
+
+class Plant(Enum):
+    """How the simulated robot produces its recordings."""
+
+    EXACT = "exact"  # inverse dynamics along the trajectory, noise added to the currents
+    CLOSED_LOOP = "closed-loop"  # the simulated cell's drives and forward dynamics
+
+
 @dataclass(frozen=True)
 class Scenario:
-    """A noise level of the Monte Carlo.
+    """A noise level (and kind of recording) of the Monte Carlo.
 
     Attributes
     ----------
@@ -29,19 +44,72 @@ class Scenario:
         gains.
     current_fraction
         White noise on each drive's current reference as a fraction of its rated current
-        (unequal torque noise per joint), dimensionless.
+        (unequal torque noise per joint), dimensionless. With :attr:`Plant.CLOSED_LOOP`: white
+        noise on the reported (period-mean) current, a measurement error the loop does not see.
+    excitation
+        The trajectory of the runs (:class:`Excitation`).
+    plant
+        Exact tracking by inverse dynamics, or the closed-loop drives (:class:`Plant`).
+    loop_noise_nm
+        :attr:`Plant.CLOSED_LOOP` only: the current-loop error of each drive as joint torque,
+        N·m, 1σ per 0.5 ms step of the simulated cell (its ``current_noise_nm``); white, so the
+        study's longer steps get it scaled by √(0.5 ms / step) (same density).
+    max_seeds
+        Most seeds this scenario runs whatever the seed count asked for (``None``: no cap); the
+        costly scenarios stop there while the others go on.
     """
 
     key: str
     label: str
     torque_noise: float
     current_fraction: float
+    excitation: Excitation = Excitation.SHIPPED
+    plant: Plant = Plant.EXACT
+    loop_noise_nm: float = 0.0
+    max_seeds: int | None = None
 
+    def seeds(self, requested: int) -> int:
+        """Seeds this scenario runs when ``requested`` are asked for."""
+        return requested if self.max_seeds is None else min(requested, self.max_seeds)
+
+
+#: Seeds of the costly new scenarios (random excitations, closed loop) in the full study.
+EXTENDED_SEEDS = 30
+#: Current-loop error of the closed-loop drives, N·m per internal step (the simulated cell's
+#: default ``current_noise_nm``, drivers/simconfig.py).
+LOOP_NOISE_NM = 0.5
 
 SCENARIOS = (
     Scenario("torque-0.05", "torque noise 0.05 N·m", 0.05, 0.0),
     Scenario("torque-0.1", "torque noise 0.1 N·m", 0.1, 0.0),
     Scenario("current-1pct", "current noise 1 % of rated current", 0.0, 0.01),
+    # Appended, never inserted: position k of a scenario is part of its seeds' streams.
+    Scenario(
+        "random-current-1pct",
+        "random excitation, current noise 1 % of rated current",
+        0.0,
+        0.01,
+        Excitation.RANDOM,
+        max_seeds=EXTENDED_SEEDS,
+    ),
+    Scenario(
+        "random-torque-0.1",
+        "random excitation, torque noise 0.1 N·m",
+        0.1,
+        0.0,
+        Excitation.RANDOM,
+        max_seeds=EXTENDED_SEEDS,
+    ),
+    Scenario(
+        "closed-loop",
+        f"closed-loop drives, current-loop error {LOOP_NOISE_NM:g} N·m",
+        0.0,
+        0.0,
+        Excitation.SHIPPED,
+        Plant.CLOSED_LOOP,
+        loop_noise_nm=LOOP_NOISE_NM,
+        max_seeds=EXTENDED_SEEDS,
+    ),
 )
 #: Root of every random stream of the study (seed s of noise level k uses (ROOT_SEED, k, s)).
 ROOT_SEED = 20120701
@@ -58,6 +126,20 @@ DEFAULT_BUDGET_S = 1500.0
 RESERVE_S = 120.0
 #: Target band for the coverage of the reported 2σ intervals (fractions).
 COVERAGE_BAND = (0.90, 0.99)
+#: Random excitations: harmonics, base frequency (Hz) and periods (6 × 10 s = 60 s per run).
+RANDOM_HARMONICS = 5
+RANDOM_BASE_HZ = 0.1
+RANDOM_PERIODS = 6
+#: Closed loop: internal step of the physics (s; 2 per 250 Hz sample), velocity-loop bandwidth
+#: (Hz; half the cell's 60 Hz, which needs 0.5 ms steps: 2π·30 Hz·2 ms = 0.38 rad stays within
+#: the cell's stability limit of 0.4 rad), and the lead-in run before the recording starts, so
+#: the loops have settled (s). The cell's 0.5 ms steps would cost 4 times as much.
+LOOP_STEP_S = 0.002
+LOOP_BANDWIDTH_HZ = 30.0
+LEAD_IN_S = 1.0
+#: Internal step of the simulated cell (drivers/simconfig.py ``max_step_s``), s: the loop noise
+#: per step is scaled from it so the noise density at low frequency is the cell's.
+CELL_STEP_S = 0.0005
 
 
 def scenario_level(scenario: Scenario) -> int:
@@ -78,5 +160,10 @@ def scenario_level(scenario: Scenario) -> int:
 
 
 def scenario_rng(scenario: Scenario, seed: int) -> np.random.Generator:
-    """The random generator of seed ``seed`` (≥ 0) of ``scenario``."""
+    """The random generator of seed ``seed`` (≥ 0) of ``scenario``: its noise."""
     return np.random.default_rng((ROOT_SEED, scenario_level(scenario), seed))
+
+
+def trajectory_rng(scenario: Scenario, seed: int) -> np.random.Generator:
+    """The generator of seed ``seed``'s random excitation: a stream apart from the noise's."""
+    return np.random.default_rng((ROOT_SEED, scenario_level(scenario), seed, 1))

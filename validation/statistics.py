@@ -8,6 +8,7 @@ the noise they share cancels out of the ratio.
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Sequence
 from typing import Any
 
@@ -16,7 +17,7 @@ import numpy as np
 from drivegain.errors import InputError
 from drivegain.identify.gains import DEFAULT_ALPHA_GRID
 from drivegain.identify.signal import parallel_decimate
-from drivegain.validation.estimators import METHODS, Method, SeedResult
+from drivegain.validation.estimators import METHODS, OURS, Method, SeedResult
 from drivegain.validation.scenarios import ROOT_SEED
 from drivegain.validation.world import World
 
@@ -118,6 +119,7 @@ def method_stats(
         "rmse_pct": np.sqrt(np.mean(e**2, axis=0)).tolist(),
         "rmse_all_pct": float(np.sqrt(np.mean(e**2))),
         "max_abs_pct": float(np.abs(e).max()) if e.size else math.nan,
+        "median_abs_pct": float(np.median(np.abs(e))) if e.size else math.nan,
         "seconds_median": float(
             np.median([r.seconds[m.key] for r in results if m.key in r.seconds])
         ),
@@ -135,8 +137,58 @@ def method_stats(
             [100 * _std(r, m.key) / np.abs(r.gains[m.key]) for r in results if m.key in r.gains],
             axis=0,
         ).tolist()
+        out.update(payload_z_stats(results, m.key, world))
     for which, nominal in (("b", world.payload.values), ("c", world.validation.values)):
         out[f"payload_{which}_rms_pct"] = payload_rms(results, m.key, nominal, which).tolist()
+    flags = [r.at_edge[m.key] for r in results if m.key in r.at_edge]
+    out["at_edge"] = float(np.mean(flags)) if flags else math.nan
+    return out
+
+
+def payload_z(results: Sequence[SeedResult], key: str, truth: np.ndarray, which: str) -> np.ndarray:
+    """(seeds, 10) z of the payload parameters of run ``which`` (b, c) fitted with ``key``'s gains.
+
+    z = (χ̂ − χ)/σ̂ with the reported σ of the Case 2 fit; NaN where the parameter was known
+    (σ = 0: nothing estimated) or the fit failed.
+    """
+    vals = "payload_b" if which == "b" else "payload_c"
+    rows = []
+    for r in results:
+        if key not in getattr(r, vals):
+            continue
+        std = np.asarray(getattr(r, vals + "_std")[key], dtype=float)
+        est = np.asarray(getattr(r, vals)[key], dtype=float)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            rows.append(np.where(std > 0, (est - truth) / std, np.nan))
+    return np.array(rows).reshape(-1, truth.size)
+
+
+def payload_z_stats(results: Sequence[SeedResult], key: str, world: World) -> dict[str, Any]:
+    """Coverage of the payload parameters' ±2σ and the spread and mean of their z.
+
+    Pooled over both payloads (runs b and c) and every estimated parameter; per parameter for
+    each payload. The σ are those of the Case 2 fit with ``key``'s gains. The parameters of run
+    b's payload that are known (its mass) are left out: the gains were scaled to reproduce
+    them, so their Case 2 estimates are the given values again and say nothing about σ.
+    """
+    out: dict[str, Any] = {}
+    pooled = []
+    for which, truth in (("b", world.payload.values), ("c", world.validation.values)):
+        z = payload_z(results, key, truth, which)
+        if which == "b":
+            z[:, world.payload.known_mask()] = np.nan
+        pooled.append(z[np.isfinite(z)])
+        with warnings.catch_warnings():
+            # A known parameter has no z at all: its empty column is NaN, not a warning.
+            warnings.simplefilter("ignore", RuntimeWarning)
+            out[f"payload_{which}_z_std"] = (
+                np.nanstd(z, axis=0, ddof=1) if z.shape[0] > 1 else np.full(truth.size, np.nan)
+            ).tolist()
+            out[f"payload_{which}_z_mean"] = np.nanmean(z, axis=0).tolist()
+    zz = np.concatenate(pooled) if pooled else np.empty(0)
+    inside = float(np.mean(np.abs(zz) <= 2.0)) if zz.size else math.nan
+    out["payload_coverage_all"] = inside
+    out["payload_coverage_all_ci"] = list(wilson(inside, int(zz.size)))
     return out
 
 
@@ -179,15 +231,15 @@ def scenario_summary(
     g = world.truth.gains
     rng = np.random.default_rng((ROOT_SEED, 7))
     stats = {m.key: method_stats(results, world, m, factor) for m in METHODS}
-    ref = rel_errors(results, "wtls", g)
+    ref = rel_errors(results, OURS, g)
     for m in METHODS:
-        if m.key == "wtls":
+        if m.key == OURS:
             continue
         e = rel_errors(results, m.key, g)
         if e.shape != ref.shape:
             continue
-        stats[m.key]["ratio_to_wtls"] = list(bootstrap_ratio(e, ref, rng))
-        stats[m.key]["ratio_to_wtls_joint"] = [
+        stats[m.key]["ratio_to_ours"] = list(bootstrap_ratio(e, ref, rng))
+        stats[m.key]["ratio_to_ours_joint"] = [
             list(bootstrap_ratio(e[:, [j]], ref[:, [j]], rng)) for j in range(g.size)
         ]
     case = {
@@ -201,18 +253,18 @@ def scenario_summary(
             ).tolist(),
         },
         "case2": {
-            "payload_b_rms_pct": stats["wtls"]["payload_b_rms_pct"],
-            "payload_c_rms_pct": stats["wtls"]["payload_c_rms_pct"],
+            "payload_b_rms_pct": stats[OURS]["payload_b_rms_pct"],
+            "payload_c_rms_pct": stats[OURS]["payload_c_rms_pct"],
             "payload_b_coverage": payload_coverage(
-                results, "wtls", world.payload.values, "b"
+                results, OURS, world.payload.values, "b"
             ).tolist(),
             "payload_c_coverage": payload_coverage(
-                results, "wtls", world.validation.values, "c"
+                results, OURS, world.validation.values, "c"
             ).tolist(),
         },
         "error_norms": {
             k: np.mean([r.error_norms[k] for r in results if k in r.error_norms], axis=0).tolist()
-            for k in ("case1", "wtls")
+            for k in ("case1", OURS)
         },
     }
     alphas = np.array([r.alpha for r in results])

@@ -20,9 +20,10 @@ import numpy as np
 
 from drivegain.errors import InputError
 from drivegain.identify.blas import limited_blas_threads
+from drivegain.validation.cluster import check_scheduler, run_monte_carlo
 from drivegain.validation.document import write_document
-from drivegain.validation.estimators import monte_carlo
 from drivegain.validation.figures import figure_coverage, figure_gain_errors, figure_payload
+from drivegain.validation.mustshow import must_show
 from drivegain.validation.paper import pipeline_tables
 from drivegain.validation.real import real_tx40, skip_reason
 from drivegain.validation.scenarios import (
@@ -52,18 +53,24 @@ def _cpus() -> int:
     )
 
 
-def check_options(seeds: int, budget_s: float) -> None:
-    """Refuse a study that cannot produce statistics.
+def check_options(
+    seeds: int, budget_s: float, scheduler: str | None = None, workers: int = 1
+) -> None:
+    """Refuse a study that cannot produce statistics or cannot run.
 
     Raises
     ------
     InputError
-        If ``seeds`` is below 2 (no spread) or ``budget_s`` (s) is not a positive number.
+        If ``seeds`` is below 2 (no spread), ``budget_s`` (s) is not a positive number,
+        ``workers`` is below 1 or ``scheduler`` is not ``tcp://HOST:PORT``.
     """
     if seeds < 2:
         raise InputError("--seeds must be at least 2", key="seeds")
     if not (math.isfinite(budget_s) and budget_s > 0):
         raise InputError("--budget must be a positive number of seconds", key="budget")
+    if workers < 1:
+        raise InputError("--workers must be at least 1", key="workers")
+    check_scheduler(scheduler)
 
 
 def run_study(
@@ -76,6 +83,8 @@ def run_study(
     command: str = "",
     scenarios: Sequence[Scenario] = SCENARIOS,
     progress: Callable[[str], None] = print,
+    scheduler: str | None = None,
+    workers: int = 1,
 ) -> dict[str, Any]:
     """The whole study; writes ``out/validation.md`` and ``out/validation/``.
 
@@ -98,6 +107,11 @@ def run_study(
         Noise levels, each one of :data:`~drivegain.validation.scenarios.SCENARIOS`.
     progress
         Receives one line of progress now and then.
+    scheduler
+        Address of a Dask scheduler (``tcp://HOST:PORT``) running the Monte Carlo's seeds, or
+        ``None`` for this machine.
+    workers
+        Without ``scheduler``: local worker processes of the Monte Carlo (1: this process).
 
     Returns
     -------
@@ -107,9 +121,10 @@ def run_study(
     Raises
     ------
     InputError
-        On too few seeds, a budget that is not positive or an unknown scenario.
+        On too few seeds, a budget that is not positive, an unknown scenario, a bad worker
+        count or scheduler address, or a scheduler that does not answer.
     """
-    check_options(seeds, budget_s)
+    check_options(seeds, budget_s, scheduler, workers)
     for sc in scenarios:  # refuse an unknown scenario before the budget is spent, not after
         scenario_level(sc)
     t_start = time.perf_counter()
@@ -124,7 +139,9 @@ def run_study(
             f"Monte Carlo: up to {seeds} seeds x {len(scenarios)} scenarios "
             f"(budget {budget_s:.0f} s)"
         )
-        results = monte_carlo(world, seeds, deadline, scenarios, progress)
+        results = run_monte_carlo(
+            world, seeds, deadline, scenarios, progress, scheduler=scheduler, workers=workers
+        )
         factor = decimated_noise_factor(world)
         summary = {sc.key: scenario_summary(results[sc.key], world, factor) for sc in scenarios}
         progress("paper's tables through drivegain identify")
@@ -147,7 +164,9 @@ def run_study(
                 "machine": f"{platform.machine()}, {_cpus()} CPUs, Python "
                 f"{platform.python_version()}, numpy {np.__version__}",
                 "seeds_requested": seeds,
-                "seeds_run": min(len(v) for v in results.values()),
+                "seeds_run": max(len(v) for v in results.values()),
+                "seeds_per_scenario": {k: len(v) for k, v in results.items()},
+                "where": scheduler or f"{workers} local process(es)",
                 "budget_s": budget_s,
                 "elapsed_s": elapsed,
                 "rate_hz": rate_hz,
@@ -155,6 +174,7 @@ def run_study(
             "truth_gains": world.truth.gains.tolist(),
             "apriori_gains": world.robot.apriori_gains.tolist(),
             "monte_carlo": summary,
+            "must_show": must_show(summary),
             "tables": tab,
             "real": real_data,
             "real_skipped": skipped,

@@ -8,7 +8,7 @@ encoder's. The recordings then go through the normal filtering and decimation pa
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +19,8 @@ from drivegain.config.robot import Robot, WristFriction
 from drivegain.config.truth import Truth
 from drivegain.dynamics.base import BaseParameters
 from drivegain.dynamics.model import RobotModel, build_model
+from drivegain.excite.limits import check_limits
+from drivegain.excite.optimise import ExcitationSettings, Problem, random_trajectory
 from drivegain.excite.trajectory import load_trajectory
 from drivegain.formats.fourier import FourierTrajectory
 from drivegain.identify.prepare import (
@@ -29,7 +31,14 @@ from drivegain.identify.prepare import (
 )
 from drivegain.identify.signal import FilterSettings, default_filter
 from drivegain.identify.synth import simulate_run
-from drivegain.validation.scenarios import QUANTUM, RATE_HZ, Scenario
+from drivegain.validation.scenarios import (
+    QUANTUM,
+    RANDOM_BASE_HZ,
+    RANDOM_HARMONICS,
+    RANDOM_PERIODS,
+    RATE_HZ,
+    Scenario,
+)
 
 
 @dataclass(frozen=True)
@@ -118,6 +127,45 @@ def make_world(rate_hz: float = RATE_HZ) -> World:
         qd=qd,
         qdd=qdd,
     )
+
+
+def with_trajectory(world: World, fourier: FourierTrajectory) -> World:
+    """``world`` following ``fourier`` instead: its samples and a filter for its bandwidth.
+
+    Raises
+    ------
+    TrajectoryError
+        If a sample of ``fourier`` breaks a limit of the robot file.
+    """
+    t = np.arange(0.0, fourier.duration_s, 1.0 / world.rate_hz)
+    q, qd, qdd, qddd = fourier.evaluate(t)
+    check_limits(world.robot, q, qd, qdd, qddd, label="random excitation", times=t)
+    bandwidth = fourier.base_frequency_hz * fourier.harmonics
+    return replace(
+        world,
+        fourier=fourier,
+        trajectory_json=b"",
+        settings=default_filter(world.rate_hz, bandwidth),
+        t=t,
+        q=q,
+        qd=qd,
+        qdd=qdd,
+    )
+
+
+def random_excitation(world: World, rng: np.random.Generator) -> FourierTrajectory:
+    """A random, non-optimised excitation inside the robot's working limits.
+
+    Drawn as the excitation optimiser draws its starting points
+    (:meth:`drivegain.excite.optimise.Problem.random_start`: offsets in the middle half of each
+    working range, coefficients with a 1/l spectrum, scaled to 90 % of the largest feasible
+    amplitude, then made rigorously feasible): :data:`RANDOM_HARMONICS` harmonics at
+    :data:`RANDOM_BASE_HZ` Hz for :data:`RANDOM_PERIODS` periods. No criterion is optimised.
+    """
+    settings = ExcitationSettings(
+        base_frequency_hz=RANDOM_BASE_HZ, harmonics=RANDOM_HARMONICS, periods=RANDOM_PERIODS
+    )
+    return random_trajectory(Problem(world.robot, settings), rng)
 
 
 @dataclass(frozen=True)

@@ -40,3 +40,13 @@ def test_demo_identifies_the_true_gains(tmp_path: Path) -> None:
     assert [g["value"] for g in report["gains"]] == pytest.approx(result.identified.tolist())
     text = (tmp_path / "demo.txt").read_text()
     assert "a priori" in text and "true" in text and str(result.report_dir) in text
+
+    # the report says what the terminal says: true gains and errors, in all three files
+    md = (result.report_dir / "report.md").read_text()
+    section = md[md.index("## Simulation truth") :]
+    assert md.index("## Drive gains") < md.index("## Simulation truth") < md.index("## Plots")
+    for j in range(truth.size):
+        err = 100 * (result.identified[j] - truth[j]) / truth[j]  # computed here, not by demo
+        assert f"| {truth[j]:.4g} |" in section and f"{err:+.3f} |" in section
+    assert "Simulation truth" in (result.report_dir / "report.html").read_text()
+    assert report["simulation_truth"]["gains"] == truth.tolist()

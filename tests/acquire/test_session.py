@@ -36,6 +36,8 @@ def _messages(path: Path) -> dict[str, list[dict]]:
     with open(path, "rb") as fh:
         reader = make_reader(fh)
         for _schema, channel, message in reader.iter_messages(log_time_order=False):
+            if channel.message_encoding != "json":
+                continue  # the ROS 2 twin of /joint_states (CDR)
             out.setdefault(channel.topic, []).append(json.loads(message.data))
     return out
 
@@ -185,7 +187,7 @@ def test_late_tpdos_are_counted_not_fatal(
     assert int(res.stats["late_cycles"]) > 50  # every cycle from 2.5 s on
     log = read_run(res.path)  # type: ignore[arg-type]
     stats = next(e for e in log.events if e["text"] == "cycle statistics")
-    assert stats["late_cycles"] == res.stats["late_cycles"]
+    assert stats["late_cycles"] == int(res.stats["late_cycles"])  # a number in the log
     assert np.all(np.diff(log.cycle) == 1)
 
 

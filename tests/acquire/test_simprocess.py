@@ -24,7 +24,10 @@ from drivegain.acquire.rig import Rig
 from drivegain.acquire.session import RunRequest, RunState
 from drivegain.cli import main
 from drivegain.config import resource_path
-from drivegain.drivers.simprocess import SimulatedCellProcess
+from drivegain.drivers.bus import BusConfig
+from drivegain.drivers.clock import Clock
+from drivegain.drivers.sim import SimConfig
+from drivegain.drivers.simprocess import SimulatedCellProcess, drives_in_child_process
 from drivegain.errors import BusError, ConfigError
 from drivegain.formats.logreader import read_run
 
@@ -240,6 +243,56 @@ def test_the_process_host_needs_the_ipc_bus(make_config: Callable[..., Path]) ->
     assert cfg.simulation is not None
     with pytest.raises(ConfigError, match="drivegain-ipc"):
         SimulatedCellProcess(cfg.robot, cfg.bus, cfg.simulation, cfg.period_s)
+    # lockstep on a vcan device: the drives share the master's process (and simulated clock)
+    vcan = BusConfig(interface="socketcan", channel="vcan0")
+    with pytest.raises(ConfigError, match="lockstep shares its simulated clock"):
+        SimulatedCellProcess(cfg.robot, vcan, cfg.simulation, cfg.period_s)
+
+
+@pytest.mark.parametrize(
+    ("interface", "clock", "child"),
+    [
+        ("virtual", "lockstep", False),
+        ("virtual", "realtime", False),
+        ("drivegain-ipc", "lockstep", True),
+        ("drivegain-ipc", "realtime", True),
+        ("socketcan", "lockstep", False),
+        ("socketcan", "realtime", True),
+    ],
+)
+def test_where_the_simulated_drives_run(interface: str, clock: str, child: bool) -> None:
+    bus = BusConfig(interface=interface, channel="vcan0")
+    assert drives_in_child_process(bus, SimConfig(clock=Clock(clock))) is child
+
+
+def test_realtime_drives_on_socketcan_open_the_interface_in_their_own_process(
+    tmp_path: Path,
+) -> None:
+    """A realtime simulation on socketcan: the rig starts the drives' process, which opens the
+    configured interface itself. Where the device cannot be opened (this host's kernel has no
+    CAN: tests/vcan runs the real thing) the child's own error reaches the caller, nothing is
+    left open, and no drive was ever started in this process."""
+    path = tmp_path / "acq.toml"
+    path.write_text(
+        f'[acquisition]\nrobot = "{resource_path("tx40.toml")}"\n'
+        '[bus]\ninterface = "socketcan"\nchannel = "vcan97"\n'
+        '[simulation]\nclock = "realtime"\n'
+    )
+    cfg = load_acquisition_config(path)
+    started: list[SimulatedCellProcess] = []
+    real_start = SimulatedCellProcess.start
+
+    def start(self: SimulatedCellProcess) -> None:
+        started.append(self)
+        real_start(self)
+
+    rig = Rig(cfg)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(SimulatedCellProcess, "start", start)
+        with pytest.raises(BusError, match="vcan97"):
+            rig.open()
+    assert [c.bus_cfg for c in started] == [cfg.bus]  # the configured bus, unchanged
+    assert started[0].pid is None and rig.cell is None and rig.master is None
 
 
 def test_simulated_drives_never_go_on_a_real_bus(tmp_path: Path) -> None:

@@ -75,3 +75,19 @@ def test_logdet_criterion_improves_the_information(robot) -> None:
     sign, logdet = np.linalg.slogdet(a.T @ a)
     assert sign > 0
     assert start.objective == pytest.approx(-logdet / a.shape[1], rel=1e-9)
+
+
+def test_the_model_built_beside_the_workers_gives_the_same_metrics(robot) -> None:
+    """The metrics reuse the criteria's model the driver built while the workers ran (issue
+    19): it must be the one a fresh build gives, so the metrics are unchanged to the bit."""
+    from drivegain.excite.evaluate import evaluate_metrics
+
+    settings = ExcitationSettings(harmonics=2, starts=1, max_iter=5, seed=2, jobs=1)
+    result = optimise(robot, settings)
+    assert result.design is not None
+    fresh = design_model(build_model(robot))
+    np.testing.assert_array_equal(result.design.kept, fresh.kept)
+    np.testing.assert_array_equal(result.design.sign_columns, fresh.sign_columns)
+    reused = evaluate_metrics(robot, result.fourier, design=result.design, samples=200)
+    again = evaluate_metrics(robot, result.fourier, samples=200)
+    assert reused == again

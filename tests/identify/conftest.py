@@ -132,6 +132,7 @@ def noisy_run(world: World) -> Simulate:
         duration: float = 40.0,
         rate: float = 250.0,
         torque_noise: float | np.ndarray = TORQUE_NOISE,
+        current_noise: float | np.ndarray = 0.0,
         label: str = "run",
     ) -> PreparedRun:
         t = np.arange(0.0, duration, 1.0 / rate)
@@ -144,6 +145,7 @@ def noisy_run(world: World) -> Simulate:
             qdd,
             payload=payload,
             torque_noise=torque_noise,
+            current_noise=current_noise,
             quantum=QUANTUM,
             rng=rng,
         )

@@ -8,7 +8,7 @@ import pytest
 from drivegain.config.robot import WristFriction
 from drivegain.errors import IdentificationError
 from drivegain.identify.design import make_design
-from drivegain.identify.gains import identify_gains
+from drivegain.identify.gains import Estimator, identify_gains
 from drivegain.identify.procedure import Options, Problem, run_procedure
 from drivegain.identify.report import report_json
 
@@ -47,7 +47,11 @@ def test_every_alpha_failing_says_both_possible_causes(world, designs) -> None:
 def test_failures_appear_in_report_json(world, designs) -> None:
     a, b, _ = designs
     problem = Problem(robot=world.robot, bases=world.bases, unloaded=a, loaded=b)
-    options = Options(friction=WristFriction.PHYSICAL, alpha_grid=(1e-22, 1e-2, 1e-1, 1.0))
+    options = Options(
+        friction=WristFriction.PHYSICAL,
+        estimator=Estimator.PAPER,
+        alpha_grid=(1e-22, 1e-2, 1e-1, 1.0),
+    )
     result = run_procedure(problem, options)
     doc = report_json(result, world.robot, [], {})
     failures = doc["wtls"]["alpha_failures"]

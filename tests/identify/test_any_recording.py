@@ -241,9 +241,23 @@ def test_payload_is_taken_from_the_loaded_log_and_measured_current_works(
 # Item 3: which current
 
 
-def test_current_without_the_payload_is_diagnosed(feedforward, tmp_path, capsys) -> None:
+def test_current_without_the_payload_is_refused_by_ml(feedforward, tmp_path, capsys) -> None:
+    """The default estimator finds no maximum (the scale is not in the data) and says why."""
     out = tmp_path / "r"
     code = _identify("--unloaded", feedforward["a"], "--loaded", feedforward["b"], "--out", out)
+    err = capsys.readouterr().err
+    assert code != 0 and not out.exists()
+    assert "grow without bound" in err and "--current measured" in err
+    assert len(err.strip().splitlines()) == 1
+
+
+def test_current_without_the_payload_is_diagnosed(feedforward, tmp_path, capsys) -> None:
+    """The paper's estimator gives a solution: the report's warnings say what is wrong."""
+    out = tmp_path / "r"
+    code = _identify(
+        "--unloaded", feedforward["a"], "--loaded", feedforward["b"], "--estimator", "paper",
+        "--out", out,
+    )  # fmt: skip
     err = capsys.readouterr().err
     assert code == 0
     warnings = json.loads((out / "report.json").read_text())["warnings"]

@@ -11,6 +11,7 @@ import numpy as np
 
 from drivegain.dynamics.params import truth_vector
 from drivegain.identify.design import ls_transform, make_design
+from drivegain.identify.gains import Estimator
 from drivegain.identify.procedure import Options, Problem, run_procedure
 from drivegain.identify.weighting import joint_sigma
 
@@ -65,9 +66,9 @@ def test_sigma_iteration_removes_the_a_priori_gain_error(world, noisy_run) -> No
     b = noisy_run(1, world.payload, rng, label="loaded")
     res = run_procedure(
         Problem(robot=world.robot, bases=world.bases, unloaded=a, loaded=b),
-        Options(compare_forms=False),
+        Options(compare_forms=False, estimator=Estimator.PAPER),
     )
-    assert res.wtls is not None and res.wtls.fit.converged
+    assert res.wtls is not None and res.wtls.fit is not None and res.wtls.fit.converged
     bp = world.bases[res.friction]
     da = make_design(a, bp, res.friction, world.robot)
     db = make_design(b, bp, res.friction, world.robot)
@@ -81,6 +82,7 @@ def test_sigma_iteration_removes_the_a_priori_gain_error(world, noisy_run) -> No
     )
     expected = np.sqrt(np.mean(err**2, axis=0))
     final = res.wtls.fit.sigma
+    assert res.wtls.sigma_initial is not None
     print(
         f"\nσ_j of the true parameters {np.round(expected, 4)} N·m; "
         f"from WTLS {np.round(final, 4)}; "

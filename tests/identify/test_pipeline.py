@@ -122,12 +122,16 @@ def test_report_json_follows_contracts_5(full_report: Path, world) -> None:
         assert b["rel_std_percent"] is None or _number(b["rel_std_percent"])
     assert _number(doc["residual"]["norm"]) and 0 < doc["residual"]["relative"] < 0.01
     m = doc["method"]
-    assert m["estimator"] == "IDIM-WTLS" and _number(m["alpha"]) and m["alpha"] > 0
+    assert m["estimator"] == "ML" and m["alpha"] is None  # the default estimator
     assert isinstance(m["samples"], int) and m["samples"] > 1000
     # Extras: both cases, the validation payload, the α curve, cross-validation.
     assert set(doc["cases"]) == {"case1", "case2"}
     assert doc["validation"]["case2"]["mass"]["value"] == pytest.approx(1.686, rel=0.02)
-    assert len(doc["wtls"]["alpha_curve"]) > 10
+    ml = doc["ml"]
+    assert len(ml["noise_std"]) == 6 and all(_number(s["std"]) for s in ml["noise_std"])
+    assert isinstance(ml["covariance_lag_samples"], int) and ml["converged"] is True
+    assert 0.0 <= ml["eiv_test"]["p_value"] <= 1.0 and ml["eiv_test"]["dof"] == 6
+    assert "wtls" not in doc
     assert len(doc["cross_validation"]["joints"]) == 6
 
 
@@ -135,7 +139,9 @@ def test_markdown_and_plots(full_report: Path) -> None:
     md = (full_report / "report.md").read_text()
     for title in ("Table 3", "Table 2", "Table 4", "Table 5", "friction forms"):
         assert title in md
-    for png in ("torques.png", "residuals.png", "alpha.png", "singular_values.png"):
+    assert "Maximum-likelihood diagnostics" in md and "Errors-in-variables test" in md
+    pngs = ("torques_unloaded.png", "torques_loaded.png")
+    for png in pngs:
         data = (full_report / png).read_bytes()
         assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 10_000
         assert f"]({png})" in md

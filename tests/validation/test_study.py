@@ -1,5 +1,9 @@
 """A small version of the validation study (drivegain.validation): 2 seeds per scenario.
 
+The first study's three scenarios and issue 17's random excitation with current noise run, on
+two local worker processes (the script's default); the closed loop costs too much for the
+suite and is checked in test_extended.py.
+
 Checks what the study must show, against the simulation truth: our gains are accurate, the
 diagonal current matrix is wrong on the coupled wrist, least squares is biased when the current
 references are noisy, Case 2 payloads beat Case 1, and the document and figures are written.
@@ -9,6 +13,7 @@ checked on known answers.
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import subprocess
 import sys
@@ -20,18 +25,29 @@ import pytest
 
 from drivegain.errors import InputError
 from drivegain.identify.signal import FilterSettings
-from drivegain.validation.scenarios import Scenario
+from drivegain.validation.estimators import METHODS, OURS
+from drivegain.validation.scenarios import SCENARIOS, Plant, Scenario
 from drivegain.validation.statistics import bootstrap_ratio, decimated_noise_factor, wilson
 from drivegain.validation.study import run_study
 from drivegain.validation.world import World
 
 SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "validate.py"
+#: The scenarios of the small study.
+RUN = [sc for sc in SCENARIOS if sc.plant is Plant.EXACT and sc.key != "random-torque-0.1"]
 
 
 @pytest.fixture(scope="module")
 def study(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict, Path]:
     out = tmp_path_factory.mktemp("study")
-    data = run_study(seeds=2, budget_s=600.0, out=out, real=None, progress=lambda _: None)
+    data = run_study(
+        seeds=2,
+        budget_s=600.0,
+        out=out,
+        real=None,
+        progress=lambda _: None,
+        workers=2,
+        scenarios=RUN,
+    )
     return data, out
 
 
@@ -44,8 +60,28 @@ def test_files_written(study: tuple[dict, Path]) -> None:
         assert f"validation/{name}.png" in doc
     saved = json.loads((out / "validation" / "results.json").read_text(encoding="utf-8"))
     assert saved["meta"]["seeds_run"] == 2
-    for title in ("Table 3", "Table 2", "Table 5", "Table 4", "Fig. 3", "Coverage of the reported"):
+    assert saved["meta"]["seeds_per_scenario"] == {sc.key: 2 for sc in RUN}
+    for title in (
+        "Table 3",
+        "Table 2",
+        "Table 5",
+        "Table 4",
+        "Fig. 3",
+        "Coverage of the reported",
+        "Must show (issue 17)",
+    ):
         assert title in doc
+    for sc in RUN:
+        assert f"### {sc.label} (2 seeds)" in doc
+    # One verdict per target and scenario, each one pass, fail or undecided.
+    checks = saved["must_show"]
+    assert {c["scenario"] for c in checks} == {sc.key for sc in RUN}
+    assert len(checks) == 7 * len(RUN)
+    assert all(c["passed"] in (True, False, None) for c in checks)
+    section = doc.split("## Must show")[1].split("\n## ")[0]
+    rows = [line for line in section.splitlines() if line.startswith("|")]
+    assert len(rows) == 2 + len(checks)  # header, rule, one row per check
+    assert all(line.count("|") == 5 for line in rows)  # no stray "|" splitting a cell
     assert "Skipped: no real recording given" in doc
 
 
@@ -53,7 +89,7 @@ def test_our_gains_are_accurate_and_the_tables_hold_the_truth(study: tuple[dict,
     data, _ = study
     g = np.asarray(data["truth_gains"])
     for key in ("torque-0.05", "torque-0.1"):
-        ours = data["monte_carlo"][key]["methods"]["wtls"]
+        ours = data["monte_carlo"][key]["methods"][OURS]
         assert ours["seeds"] == 2 and not ours["failures"]
         assert ours["max_abs_pct"] < 0.2
     tab = data["tables"]
@@ -70,7 +106,12 @@ def test_what_the_comparison_must_show(study: tuple[dict, Path]) -> None:
     # Noisy currents as LS regressors: every gain shrinks (errors-in-variables); TLS does not.
     noisy = mc["current-1pct"]["methods"]
     assert max(noisy["global_ls"]["bias_pct"]) < -0.5
-    assert max(abs(b) for b in noisy["wtls"]["bias_pct"]) < 0.5
+    assert max(abs(b) for b in noisy[OURS]["bias_pct"]) < 0.5
+    # Random excitation: every estimator ran on every seed (no failure).
+    for sc in RUN[3:]:
+        st = mc[sc.key]["methods"]
+        assert all(st[m.key]["seeds"] == 2 for m in METHODS), sc.key
+        assert 0 <= st[OURS]["at_edge"] <= 1
     # Case 2 payload closer to the truth than Case 1, every parameter, both payloads.
     for key in mc:
         cases = mc[key]["cases"]
@@ -116,3 +157,16 @@ def test_script_bad_options_exit_2() -> None:
         )
         assert proc.returncode == 2, proc.stderr
         assert argv[0] in proc.stderr
+
+
+def test_script_refuses_bad_workers_and_scheduler(capsys: pytest.CaptureFixture[str]) -> None:
+    """In this process (the script's main), before any work: exit status 2, the option named."""
+    spec = importlib.util.spec_from_file_location("validate_script", SCRIPT)
+    assert spec is not None and spec.loader is not None
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    for argv in (["--workers", "0"], ["--scheduler", "localhost"], ["--scheduler", "tcp://h:x"]):
+        with pytest.raises(SystemExit) as exc:
+            script.main(argv)
+        assert exc.value.code == 2
+        assert argv[0] in capsys.readouterr().err

@@ -1,0 +1,139 @@
+"""Heteroscedasticity- and autocorrelation-consistent (HAC) covariance of M-estimators.
+
+Equation errors of decimated recordings are correlated in time: the anti-aliasing filter spreads
+each raw sample's noise over neighbouring decimated samples, and filtered positions carry slowly
+varying errors into the regressor. A covariance that assumes independent samples is then too
+small. The estimators of :mod:`drivegain.identify.ml` and :mod:`drivegain.identify.eiv` write
+their estimate as a sum of per-sample scores ψ_k and use the Newey-West (Bartlett kernel)
+estimate of the scores' long-run covariance here, with the lag chosen from the data by the
+AR(1) plug-in rule of Andrews (1991).
+
+Plain functions on numpy arrays; ``series`` are lists of per-run arrays (samples × components),
+because correlation is summed within a run, never across two runs.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from drivegain.errors import UsageError
+
+#: Largest lag as a fraction of the shortest run's samples: beyond it the estimate is too noisy.
+MAX_LAG_FRACTION = 0.25
+
+
+def _check_series(series: Sequence[np.ndarray]) -> list[np.ndarray]:
+    out = [np.asarray(s, dtype=float) for s in series]
+    if not out or any(s.ndim != 2 or s.shape[0] < 2 for s in out):
+        raise UsageError("series must be a non-empty list of (samples ≥ 2, components) arrays")
+    if len({s.shape[1] for s in out}) != 1:
+        raise UsageError("every series must have the same number of components")
+    return out
+
+
+def lag1_autocorrelation(series: Sequence[np.ndarray]) -> float:
+    """Pooled lag-1 autocorrelation of every component of every series, dimensionless.
+
+    Parameters
+    ----------
+    series
+        Per run, (samples, components) arrays, e.g. whitened residuals.
+
+    Returns
+    -------
+    float
+        Σ x_k x_(k−1) / Σ x_k² over all components and runs (means removed), in (−1, 1).
+    """
+    num = 0.0
+    den = 0.0
+    for s in _check_series(series):
+        x = s - s.mean(axis=0)
+        num += float(np.sum(x[1:] * x[:-1]))
+        den += float(np.sum(x * x))
+    if den <= 0.0:
+        return 0.0
+    return float(np.clip(num / den, -0.97, 0.97))
+
+
+def bartlett_lag(series: Sequence[np.ndarray]) -> int:
+    """Newey-West truncation lag from the data (Andrews 1991, AR(1) plug-in, Bartlett kernel).
+
+    ``L = 1.1447 (a N)^(1/3)`` with ``a = 4ρ² / ((1 − ρ)² (1 + ρ)²)``, ρ the pooled lag-1
+    autocorrelation (:func:`lag1_autocorrelation`) and N the samples of the shortest run; capped
+    at :data:`MAX_LAG_FRACTION` of N.
+
+    Parameters
+    ----------
+    series
+        Per run, (samples, components) arrays whose autocorrelation decides the lag.
+
+    Returns
+    -------
+    int
+        The lag, samples (0 for uncorrelated series).
+    """
+    series = _check_series(series)
+    rho = lag1_autocorrelation(series)
+    n = min(s.shape[0] for s in series)
+    a = 4.0 * rho**2 / ((1.0 - rho) ** 2 * (1.0 + rho) ** 2)
+    lag = int(np.ceil(1.1447 * (a * n) ** (1.0 / 3.0))) if a > 0 else 0
+    return int(min(lag, max(0, int(MAX_LAG_FRACTION * n))))
+
+
+def long_run_covariance(scores: Sequence[np.ndarray], lag: int) -> np.ndarray:
+    """Σ over runs of the Bartlett-weighted sum of score autocovariances (the HAC "meat").
+
+    ``S = Σ_runs [Γ_0 + Σ_(l=1..L) (1 − l/(L+1)) (Γ_l + Γ_lᵀ)]`` with
+    ``Γ_l = Σ_k ψ_k ψ_(k−l)ᵀ``. The scores must be evaluated at the estimate (they sum to
+    zero there); they are not demeaned.
+
+    Parameters
+    ----------
+    scores
+        Per run, (samples, parameters) per-sample scores.
+    lag
+        Truncation lag L, samples (≥ 0).
+
+    Returns
+    -------
+    numpy.ndarray
+        (parameters, parameters), positive semi-definite.
+    """
+    scores = _check_series(scores)
+    if lag < 0:
+        raise UsageError(f"lag must be ≥ 0, got {lag}")
+    p = scores[0].shape[1]
+    meat = np.zeros((p, p))
+    for s in scores:
+        meat += s.T @ s
+        for lg in range(1, min(lag, s.shape[0] - 1) + 1):
+            gam = s[lg:].T @ s[:-lg]
+            meat += (1.0 - lg / (lag + 1.0)) * (gam + gam.T)
+    return meat
+
+
+def sandwich(bread: np.ndarray, meat: np.ndarray, rows: int, params: int) -> np.ndarray:
+    """``H⁻¹ S H⁻¹ · rows / (rows − params)``: the HAC covariance with the small-sample factor.
+
+    Parameters
+    ----------
+    bread
+        H, the Hessian (or its Gauss-Newton approximation) of the objective whose per-sample
+        gradients are the scores, (p, p).
+    meat
+        S from :func:`long_run_covariance`, (p, p).
+    rows, params
+        Scalar equations used and parameters fitted (the degrees-of-freedom correction).
+
+    Returns
+    -------
+    numpy.ndarray
+        Covariance of the estimate, (p, p), symmetric.
+    """
+    if rows <= params:
+        raise UsageError(f"need more equations ({rows}) than parameters ({params})")
+    h_inv = np.linalg.pinv(bread, hermitian=True)
+    cov = h_inv @ meat @ h_inv * (rows / (rows - params))
+    return np.asarray(0.5 * (cov + cov.T))

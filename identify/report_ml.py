@@ -1,0 +1,87 @@
+"""The maximum-likelihood estimator's part of the report: JSON fields and Markdown lines."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from drivegain.config.payload import PAYLOAD_PARAMS
+from drivegain.config.robot import Robot
+from drivegain.identify.gains import Estimator, GainIdentification
+from drivegain.identify.reportfmt import PAYLOAD_KEYS
+from drivegain.identify.reportfmt import json_num as _num
+from drivegain.identify.reportfmt import short as _g
+
+
+def estimator_name(w: GainIdentification | None) -> str:
+    """``method.estimator`` of report.json: the gain estimator (IDIM-WLS when none ran)."""
+    if w is None:
+        return "IDIM-WLS"
+    return "ML" if w.estimator is Estimator.ML else "IDIM-WTLS"
+
+
+def ml_json(w: GainIdentification, robot: Robot) -> dict[str, Any]:
+    """The maximum-likelihood estimator's noise model, covariance and errors-in-variables test."""
+    ml, eiv = w.ml, w.eiv
+    assert ml is not None and eiv is not None  # set together by the ML estimator
+    return {
+        "noise_std": [
+            {"drive": name, "std": _num(s), "unit": "A"}
+            for name, s in zip(robot.joint_names, ml.noise_std, strict=True)
+        ],
+        "noise_covariance": [[_num(v) for v in row] for row in ml.noise],
+        "rounds": ml.iterations,
+        "converged": ml.converged,
+        "start_gains": [_num(g) for g in ml.start_gains],
+        "covariance": "HAC (Newey-West, Bartlett kernel)",
+        "covariance_lag_samples": ml.lag,
+        "residual_lag1_autocorrelation": _num(ml.rho),
+        "payload_unknown": {
+            PAYLOAD_KEYS[PAYLOAD_PARAMS.index(p)]: {"value": _num(v), "std": _num(s)}
+            for p, v, s in zip(w.payload_names, w.payload_unknown, w.payload_std, strict=True)
+        },
+        "eiv_test": {
+            "statistic": _num(eiv.statistic),
+            "dof": eiv.dof,
+            "p_value": _num(eiv.p_value),
+            "ls_biased": eiv.biased,
+            "ls_gains": [_num(g) for g in eiv.ls_gains],
+            "ls_std": [_num(s) for s in eiv.ls_std],
+        },
+    }
+
+
+def ml_lines(w: GainIdentification, robot: Robot) -> list[str]:
+    """Markdown of the maximum-likelihood diagnostics."""
+    ml, eiv = w.ml, w.eiv
+    assert ml is not None and eiv is not None
+    names = robot.joint_names
+    verdict = (
+        f"**plain least squares is biased on these data** (p = {_g(eiv.p_value, 2)} < 0.01): "
+        "the currents are noisy enough that treating them as exact regressors attenuates the "
+        "gains"
+        if eiv.biased
+        else f"no evidence that plain least squares is biased here (p = {_g(eiv.p_value, 2)})"
+    )
+    return [
+        "",
+        "## Maximum-likelihood diagnostics",
+        "",
+        "- Gains, base and payload parameters by maximum likelihood in current units, with the "
+        'noise covariance estimated from the data (docs/model.md, "Estimators"); no weight '
+        "is chosen by hand.",
+        "- Noise model (1σ of what the model leaves in each drive's current, A): "
+        + ", ".join(f"{nm} {_g(float(s), 3)}" for nm, s in zip(names, ml.noise_std, strict=True))
+        + ".",
+        f"- Standard deviations: HAC sandwich (Newey-West, lag {ml.lag} decimated samples, from "
+        f"the residuals' lag-1 autocorrelation {_g(ml.rho, 2)}); {ml.iterations} rounds"
+        + ("" if ml.converged else " (**did not settle**)")
+        + ".",
+        f"- Errors-in-variables test (Durbin-Wu-Hausman, LS against ML): statistic "
+        f"{_g(eiv.statistic, 3)} on {eiv.dof} degrees of freedom; " + verdict + ".",
+        "- Plain LS gains (N·m/A, ± 2σ): "
+        + ", ".join(
+            f"{nm} {_g(float(g))} ± {_g(2 * float(s), 2)}"
+            for nm, g, s in zip(names, eiv.ls_gains, eiv.ls_std, strict=True)
+        )
+        + ".",
+    ]

@@ -1,0 +1,182 @@
+"""Issue 17's "Must show": each target, each scenario, pass or fail, from the run's summary.
+
+The targets are about our estimator (:data:`~drivegain.validation.estimators.OURS`): an honest
+±2σ (coverage and spread of z for the gains and the payload parameters), no bias (mean z), no
+search stuck at an edge, and the smallest gain error where the issue asks for it. Values are
+point estimates over the seeds run; the Wilson interval of each coverage is beside it.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+
+from drivegain.validation.estimators import METHODS, OURS
+from drivegain.validation.markdown import table
+from drivegain.validation.scenarios import SCENARIOS, Plant, Scenario
+
+#: Pooled ±2σ coverage asked for (fractions), spread of z per joint/parameter, largest |mean z|,
+#: largest fraction of seeds with a weight or α at the edge of its search range.
+COVERAGE_TARGET = (0.93, 0.97)
+Z_SPREAD_TARGET = (0.9, 1.1)
+Z_MEAN_MAX = 0.5
+EDGE_MAX = 0.05
+#: Methods ours must beat on every joint under current noise (issue 17).
+CURRENT_NOISE_RIVALS = ("per_joint", "tls")
+
+
+@dataclass(frozen=True)
+class Check:
+    """One target in one scenario.
+
+    Attributes
+    ----------
+    scenario, target
+        Scenario key and what is asked (short, for the table).
+    value
+        What the run gave, as printed.
+    passed
+        ``None`` when the run cannot tell (no seeds, no σ).
+    """
+
+    scenario: str
+    target: str
+    value: str
+    passed: bool | None
+
+
+def _band(x: float, lo: float, hi: float) -> bool | None:
+    return None if not math.isfinite(x) else lo <= x <= hi
+
+
+def _all_in(xs: Sequence[float], lo: float, hi: float) -> bool | None:
+    vals = [x for x in xs if math.isfinite(x)]
+    return None if not vals else all(lo <= x <= hi for x in vals)
+
+
+def _fmt_list(xs: Sequence[float]) -> str:
+    return " ".join("–" if not math.isfinite(x) else f"{x:.2f}" for x in xs)
+
+
+def scenario_checks(sc: Scenario, summary: dict[str, Any]) -> list[Check]:
+    """The targets of issue 17 for one scenario's summary (``scenario_summary``)."""
+    st = summary["methods"]
+    ours = st[OURS]
+    out: list[Check] = []
+    add = out.append
+    lo, hi = COVERAGE_TARGET
+    zlo, zhi = Z_SPREAD_TARGET
+    cov = ours.get("coverage_all", math.nan)
+    ci = ours.get("coverage_all_ci", [math.nan, math.nan])
+    add(
+        Check(
+            sc.key,
+            f"gain coverage {100 * lo:.0f}-{100 * hi:.0f} %",
+            f"{100 * cov:.1f} [{100 * ci[0]:.1f}, {100 * ci[1]:.1f}]",
+            _band(cov, lo, hi),
+        )
+    )
+    zs = ours.get("z_std", [])
+    add(Check(sc.key, f"gain z spread {zlo}-{zhi}", _fmt_list(zs), _all_in(zs, zlo, zhi)))
+    zm = ours.get("z_mean", [])
+    add(
+        Check(
+            sc.key,
+            f"gain mean z within ±{Z_MEAN_MAX}",
+            _fmt_list(zm),
+            _all_in([abs(z) for z in zm], 0.0, Z_MEAN_MAX),
+        )
+    )
+    pcov = ours.get("payload_coverage_all", math.nan)
+    pci = ours.get("payload_coverage_all_ci", [math.nan, math.nan])
+    add(
+        Check(
+            sc.key,
+            f"payload coverage {100 * lo:.0f}-{100 * hi:.0f} %",
+            f"{100 * pcov:.1f} [{100 * pci[0]:.1f}, {100 * pci[1]:.1f}]",
+            _band(pcov, lo, hi),
+        )
+    )
+    pz = list(ours.get("payload_b_z_std", [])) + list(ours.get("payload_c_z_std", []))
+    finite = [z for z in pz if math.isfinite(z)]
+    add(
+        Check(
+            sc.key,
+            f"payload z spread {zlo}-{zhi}",
+            f"{min(finite):.2f}-{max(finite):.2f}" if finite else "–",
+            _all_in(pz, zlo, zhi),
+        )
+    )
+    edge = ours.get("at_edge", math.nan)
+    add(
+        Check(
+            sc.key,
+            f"edge ≤ {100 * EDGE_MAX:.0f} % of seeds",
+            "–" if not math.isfinite(edge) else f"{100 * edge:.0f} %",
+            None if not math.isfinite(edge) else edge <= EDGE_MAX,
+        )
+    )
+    mine = np.asarray(ours["rmse_pct"], dtype=float)
+    if sc.current_fraction > 0 and sc.plant is Plant.EXACT:
+        rivals = [k for k in CURRENT_NOISE_RIVALS if k in st]
+        what = "RMS ≤ " + ", ".join(_label(k) for k in rivals) + " per joint"
+    else:
+        rivals = [m.key for m in METHODS if m.key != OURS and not m.ablation and m.key in st]
+        what = "RMS smallest of all methods per joint"
+    worse = [
+        f"{_label(k)} j{j + 1}"
+        for k in rivals
+        for j, v in enumerate(st[k]["rmse_pct"])
+        if math.isfinite(v) and v < mine[j]
+    ]
+    add(
+        Check(
+            sc.key,
+            what,
+            "beaten on " + ", ".join(worse) if worse else "never beaten",
+            None if not np.all(np.isfinite(mine)) else not worse,
+        )
+    )
+    return out
+
+
+def _label(key: str) -> str:
+    return next(m.label for m in METHODS if m.key == key)
+
+
+def must_show(summary: dict[str, Any]) -> list[dict[str, Any]]:
+    """Every check of every scenario of ``summary`` (scenario key → summary), as dicts."""
+    return [
+        asdict(c)
+        for sc in SCENARIOS
+        if sc.key in summary
+        for c in scenario_checks(sc, summary[sc.key])
+    ]
+
+
+def _word(passed: bool | None) -> str:
+    return "–" if passed is None else ("pass" if passed else "**FAIL**")
+
+
+def must_show_text(checks: Sequence[dict[str, Any]]) -> str:
+    """The "Must show" section: one row per scenario and target."""
+    passed = sum(c["passed"] is True for c in checks)
+    failed = sum(c["passed"] is False for c in checks)
+    lines = [
+        "## Must show (issue 17): our estimator against its targets",
+        "",
+        f"{passed} targets met, {failed} not met, over "
+        f"{len({c['scenario'] for c in checks})} scenarios. Coverage: truth inside the reported "
+        "±2σ, pooled over joints (or payload parameters of both payloads) and seeds, with its "
+        "95 % Wilson interval; z = (estimate − truth)/σ̂ per joint; edge: seeds whose searched "
+        "weight or α ended at an end of its range; RMS: relative gain error per joint against "
+        "the other methods (point estimates; the paired intervals are in the gain tables).",
+        "",
+    ]
+    rows = [[c["scenario"], c["target"], c["value"], _word(c["passed"])] for c in checks]
+    lines += table(["scenario", "target", "this run", "verdict"], rows)
+    return "\n".join(lines)
