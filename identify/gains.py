@@ -166,7 +166,7 @@ def estimate_gains(
     std = fit.gain_std
     rsd = 100.0 * std / np.abs(fit.gains)
     for j in np.flatnonzero(rsd > GAIN_RSD_WARN):
-        warnings.append(f"gain of joint {j + 1} is poorly determined (1σ = {rsd[j]:.3g} %)")
+        warnings.append(f"gain of joint {j + 1} is poorly determined (%σ = {rsd[j]:.3g} %)")
     return GainIdentification(
         gains=fit.gains,
         std=std,
@@ -280,7 +280,9 @@ def identify_gains(
         if not np.isfinite(min(values)):
             raise IdentificationError(_all_failed(failures, len(scale_only) == len(failures)))
         best_i = int(np.argmin(values))
-        for al in _refine_grid(grid, best_i):
+        refine = _refine_grid(grid, best_i)
+        for i, al in enumerate(refine):
+            step(f"IDIM-WTLS: α refined {i + 1}/{len(refine)}")
             run(al)
         best = min((f for f in fits.values() if f is not None), key=lambda f: f.relative_error)
         curve.sort()

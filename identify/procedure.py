@@ -333,7 +333,7 @@ def _run_procedure(problem: Problem, options: Options, step: Step) -> ProcedureR
     checks = physical_checks(final)
     for c_ in checks:
         if not c_.ok:
-            warnings.append(f"{c_.name} = {c_.value:.4g} ± {c_.std:.2g}: {c_.note}")
+            warnings.append(f"{c_.name} = {c_.value:.4g} ± {2 * c_.std:.2g} (2σ): {c_.note}")
     samples = {label: d.rows for label, d in designs.items()}
     return ProcedureResult(
         friction=form,

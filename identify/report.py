@@ -322,7 +322,7 @@ def markdown_report(
         lines += [f"- {r.label}: {note}" for note in r.notes]
     if result.warnings:
         lines += ["", "## Warnings", ""]
-        lines += ["A value written ± x in a warning is one σ; %σ is one σ relative.", ""]
+        lines += ["A value written ± x in a warning is 2σ, as in the tables; %σ is 1σ.", ""]
         lines += [f"- {w}" for w in result.warnings]
 
     lines += ["", "## Drive gains (Table 3)", ""]

@@ -129,3 +129,16 @@ def test_filtered_derivatives_are_unbiased_at_low_sample_rates() -> None:
     qdd_ref = np.column_stack([-(w**2) * np.sin(w * t), -0.012 * w**2 * np.cos(0.2 * w * t)])
     assert np.abs(qd[inner] - qd_ref[inner]).max() < 1e-7 * w
     assert np.abs(qdd[inner] - qdd_ref[inner]).max() < 1e-7 * w**2
+
+
+def test_decimation_stage_equals_scipy_decimate() -> None:
+    """The cached filter design gives scipy.signal.decimate's output exactly."""
+    import scipy.signal as sps
+
+    from drivegain.identify.signal import MAX_STAGE, _decimate_stage
+
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(3000, 3)).cumsum(axis=0)
+    for q in (2, 5, MAX_STAGE):
+        expected = sps.decimate(x, q, ftype="iir", axis=0, zero_phase=True)
+        np.testing.assert_array_equal(_decimate_stage(x, q), expected)
