@@ -35,6 +35,7 @@ from drivegain.config.excitation import (
     DEFAULT_HARMONICS,
     DEFAULT_PERIODS,
 )
+from drivegain.console import make_console
 from drivegain.drivers.bus import BusOverrides
 from drivegain.errors import ConfigError, IdentificationError
 from drivegain.fileio import write_atomic
@@ -144,7 +145,8 @@ def run_demo(
     plots
         False (``--no-plots``): the identification renders no figure.
     """
-    console = console or Console()
+    # stdout, not wrapped at a guessed 80 columns when piped (drivegain.console)
+    console = console or make_console()
     if robot not in ROBOTS:
         raise ConfigError(f"unknown demo robot {robot!r} (one of {', '.join(ROBOTS)})")
     sim_config, shipped = ROBOTS[robot]
