@@ -24,7 +24,7 @@ import numpy as np
 from drivegain.config.payload import Payload
 from drivegain.identify.design import Design
 from drivegain.identify.hac import long_run_covariance
-from drivegain.identify.ml import MLFit, linear_start, ml_influence, run_arrays
+from drivegain.identify.ml import MLFit, linear_start, ls_rows, ml_influence, run_arrays
 
 #: Significance level below which the report says plain LS is biased on the data.
 LEVEL = 0.01
@@ -60,24 +60,14 @@ class EIVTest:
         return self.p_value < LEVEL
 
 
-def _ls_influence(
-    a: Design, b: Design, payload: Payload
-) -> tuple[np.ndarray, list[np.ndarray], np.ndarray]:
-    """Weighted LS estimate, per-run per-sample influences (N, P) and its covariance basis."""
+def _ls_influence(a: Design, b: Design, payload: Payload) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Weighted LS estimate and, per run, each sample's first-order influence on it (N, P)."""
     runs = [run_arrays(a, payload), run_arrays(b, payload)]
     kt = np.asarray(a.kt, float)
     theta, w = linear_start(runs, kt)
-    nb, n = a.nb, a.n
-    nu = runs[0].wu.shape[2]
-    p = nb + n + nu
-    mats, resids = [], []
-    for r in runs:
-        m = np.zeros((r.samples, n, p))
-        m[:, :, :nb] = -r.w
-        m[:, :, nb : nb + n] = r.v[:, None, :] * kt[None, :, :]
-        m[:, :, nb + n :] = -r.wu
-        mats.append(m)
-        resids.append(m @ theta - r.tau_known)
+    mats = [ls_rows(r, kt) for r in runs]
+    resids = [m @ theta - r.tau_known for m, r in zip(mats, runs, strict=True)]
+    p = theta.size
     bread = np.zeros((p, p))
     for m in mats:
         flat = (m * w[None, :, None]).reshape(-1, p)
@@ -87,7 +77,7 @@ def _ls_influence(
         -np.matmul((e * w**2)[:, None, :], m)[:, 0, :] @ h_inv
         for m, e in zip(mats, resids, strict=True)
     ]
-    return theta, infl, h_inv
+    return theta, infl
 
 
 def eiv_test(fit: MLFit, a: Design, b: Design, payload: Payload) -> EIVTest:
@@ -108,7 +98,7 @@ def eiv_test(fit: MLFit, a: Design, b: Design, payload: Payload) -> EIVTest:
     from scipy.stats import chi2
 
     nb, n = a.nb, a.n
-    theta_ls, infl_ls, _ = _ls_influence(a, b, payload)
+    theta_ls, infl_ls = _ls_influence(a, b, payload)
     infl_ml = ml_influence(fit, a, b, payload)
     gains = slice(nb, nb + n)
     diff_terms = [(l_ - m_)[:, gains] for l_, m_ in zip(infl_ls, infl_ml, strict=True)]

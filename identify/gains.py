@@ -164,9 +164,7 @@ def estimate_gains(
             f"maximum likelihood: Gauss-Newton did not settle in {fit.iterations} steps"
         )
     std = fit.gain_std
-    rsd = 100.0 * std / np.abs(fit.gains)
-    for j in np.flatnonzero(rsd > GAIN_RSD_WARN):
-        warnings.append(f"gain of joint {j + 1} is poorly determined (%σ = {rsd[j]:.3g} %)")
+    warnings += _poorly_determined(fit.gains, std)
     return GainIdentification(
         gains=fit.gains,
         std=std,
@@ -184,6 +182,15 @@ def estimate_gains(
         ml=fit,
         eiv=test,
     )
+
+
+def _poorly_determined(gains: np.ndarray, std: np.ndarray) -> list[str]:
+    """One warning per gain whose relative standard deviation exceeds :data:`GAIN_RSD_WARN`."""
+    rsd = 100.0 * std / np.abs(gains)
+    return [
+        f"gain of joint {j + 1} is poorly determined (%σ = {rsd[j]:.3g} %)"
+        for j in np.flatnonzero(rsd > GAIN_RSD_WARN)
+    ]
 
 
 def _refine_grid(grid: Sequence[float], best: int, points: int = 5) -> list[float]:
@@ -314,9 +321,7 @@ def identify_gains(
         )
     if not best.converged:
         warnings.append(f"σ_j iteration did not settle in {SIGMA_MAX_ITER} steps")
-    rsd = 100.0 * std / np.abs(gains)
-    for j in np.flatnonzero(rsd > GAIN_RSD_WARN):
-        warnings.append(f"gain of joint {j + 1} is poorly determined (%σ = {rsd[j]:.3g} %)")
+    warnings += _poorly_determined(gains, std)
     unknown = [p for p, k in zip(PAYLOAD_PARAMS, payload.known_mask(), strict=True) if not k]
     return GainIdentification(
         gains=gains,

@@ -208,6 +208,20 @@ def _noise(resid: Sequence[np.ndarray]) -> np.ndarray:
     return np.asarray(cov + floor * np.eye(cov.shape[0]))
 
 
+def ls_rows(run: RunArrays, kt: np.ndarray) -> np.ndarray:
+    """Rows ``[−W | V K | −W_uL]`` of the least squares with V as regressor, (N, n, P).
+
+    Their product with θ = (χ, g, χ_uL) minus the known payload's torque is the equation error
+    of every sample and joint, N·m.
+    """
+    nb, n, nu = run.w.shape[2], run.v.shape[1], run.wu.shape[2]
+    m = np.zeros((run.samples, n, nb + n + nu))
+    m[:, :, :nb] = -run.w
+    m[:, :, nb : nb + n] = run.v[:, None, :] * kt[None, :, :]
+    m[:, :, nb + n :] = -run.wu
+    return m
+
+
 def linear_start(runs: Sequence[RunArrays], kt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """θ of the least squares ``V K g − W χ − W_uL χ_uL = W_kL χ_kL`` (torque units).
 
@@ -215,18 +229,13 @@ def linear_start(runs: Sequence[RunArrays], kt: np.ndarray) -> tuple[np.ndarray,
     estimate is attenuated (errors in variables); it starts the likelihood search and is the
     plain LS of the errors-in-variables test. Returns θ and the row weights used, 1/(N·m).
     """
-    nb, n = runs[0].w.shape[2], runs[0].v.shape[1]
-    nu = runs[0].wu.shape[2]
+    n = runs[0].v.shape[1]
+    mats = [ls_rows(r, kt) for r in runs]
+    p = mats[0].shape[2]
 
     def system(weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        rows_a, rows_y = [], []
-        for r in runs:
-            a = np.zeros((r.samples, n, nb + n + nu))
-            a[:, :, :nb] = -r.w
-            a[:, :, nb : nb + n] = r.v[:, None, :] * kt[None, :, :]
-            a[:, :, nb + n :] = -r.wu
-            rows_a.append((a * weights[None, :, None]).reshape(-1, nb + n + nu))
-            rows_y.append((r.tau_known * weights[None, :]).reshape(-1))
+        rows_a = [(m * weights[None, :, None]).reshape(-1, p) for m in mats]
+        rows_y = [(r.tau_known * weights[None, :]).reshape(-1) for r in runs]
         return np.vstack(rows_a), np.concatenate(rows_y)
 
     w = np.ones(n)
@@ -346,10 +355,9 @@ def ml_fit(
             f"{float(ratio.max()):.2g} times the least-squares start): the loaded run's currents "
             "do not carry the known payload's effect, so the data do not fix the gains' scale"
         )
-    resid = residuals(theta)
     if step is not None:
         step("maximum likelihood: HAC covariance")
-    noise = _noise(resid)
+    # ``noise`` is already Σ̂ of the final θ (the loop's last update).
     scores, bread, white = score_terms(theta, runs, kt_inv, noise)
     lag = bartlett_lag(white)
     rows = sum(r.samples for r in runs) * n
