@@ -27,6 +27,7 @@ from drivegain.config.payload import Payload, load_payload
 from drivegain.drivers.bus import BusLoad
 from drivegain.errors import DataError, InputError, OperatorStop, UsageError
 from drivegain.excite.trajectory import ExcitationFile, load_trajectory
+from drivegain.fileio import reading
 
 _LABEL = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 
@@ -133,14 +134,8 @@ def prepare_run(cfg: AcquisitionConfig, request: RunRequest) -> PreparedRun:
 
 
 def _read_bytes(path: Path) -> bytes:
-    try:
+    with reading(path):
         return path.read_bytes()
-    except FileNotFoundError:
-        raise InputError("file not found", file=path) from None
-    except IsADirectoryError:
-        raise InputError("is a directory, expected a file", file=path) from None
-    except OSError as exc:
-        raise InputError(f"cannot read ({exc.strerror})", file=path) from None
 
 
 def check_run_size(excitation: ExcitationFile, *, file: Path) -> None:

@@ -10,22 +10,17 @@ from typing import Any
 import numpy as np
 
 from drivegain.errors import ConfigError
+from drivegain.fileio import reading
 
 
 def read_toml(path: str | Path) -> dict[str, Any]:
     """Read a TOML file, turning every failure into a :class:`ConfigError` naming the file."""
     p = Path(path)
-    try:
-        with p.open("rb") as fh:
+    with reading(p, error=ConfigError, expected="a TOML file"), p.open("rb") as fh:
+        try:
             return tomllib.load(fh)
-    except FileNotFoundError:
-        raise ConfigError("file not found", file=p) from None
-    except IsADirectoryError:
-        raise ConfigError("is a directory, expected a TOML file", file=p) from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"not valid TOML ({exc})", file=p) from None
-    except UnicodeDecodeError:
-        raise ConfigError("not a UTF-8 text file", file=p) from None
+        except tomllib.TOMLDecodeError as exc:
+            raise ConfigError(f"not valid TOML ({exc})", file=p) from None
 
 
 def read_root(path: str | Path, tables: set[str]) -> Table:

@@ -2,16 +2,48 @@
 
 Every command that writes checks its output paths first (:func:`check_output`), before any
 long computation or any motion, so a bad ``--out`` costs nothing; files are then written whole
-through a temporary file and a rename (:func:`write_atomic`).
+through a temporary file and a rename (:func:`write_atomic`). Input files are read under
+:func:`reading`, which turns the operating system's errors into one line naming the file.
 """
 
 from __future__ import annotations
 
 import os
 import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 from drivegain.errors import InputError
+
+
+@contextmanager
+def reading(
+    path: str | Path, *, error: type[InputError] = InputError, expected: str = "a file"
+) -> Iterator[None]:
+    """Open and read ``path`` inside this block: a missing file, a directory, text that is not
+    UTF-8 or any other operating-system error becomes ``error`` (one line naming the file).
+
+    Parameters
+    ----------
+    path
+        The file (a path or a storage location), as the message names it.
+    error
+        The :class:`~drivegain.errors.InputError` subclass raised.
+    expected
+        What the file should have been, for the directory message (e.g. ``"a CSV file"``).
+    """
+    try:
+        yield
+    except FileNotFoundError:
+        raise error("file not found", file=path) from None
+    except IsADirectoryError:
+        raise error(f"is a directory, expected {expected}", file=path) from None
+    except UnicodeDecodeError:
+        raise error("not a UTF-8 text file", file=path) from None
+    except OSError as exc:
+        # remote file systems raise OSErrors without an errno: their text is the reason
+        raise error(f"cannot read ({exc.strerror or exc})", file=path) from None
 
 
 def check_output(

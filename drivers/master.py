@@ -33,7 +33,7 @@ from pathlib import Path
 import can
 import canopen
 import numpy as np
-from canopen.objectdictionary import ObjectDictionary, import_od
+from canopen.objectdictionary import ObjectDictionary
 
 from drivegain.config.robot import Robot
 from drivegain.drivers import objects as ob
@@ -172,7 +172,7 @@ class Master:
         od_probe: ObjectDictionary | None = None
         for j, joint in enumerate(robot.joints):
             try:
-                od = import_od(str(self.eds), joint.node_id)
+                od = ob.load_od(self.eds, joint.node_id)
             except Exception as exc:
                 raise ConfigError(f"cannot read the EDS ({exc})", file=self.eds) from None
             od_probe = od_probe or od

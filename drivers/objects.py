@@ -8,11 +8,17 @@ tags by arrival window instead).
 
 from __future__ import annotations
 
+import copy
+import functools
 import math
+import os
 import struct
+from collections.abc import Iterator
 from dataclasses import dataclass
 from enum import IntEnum
 from pathlib import Path
+
+from canopen.objectdictionary import ObjectDictionary, ODVariable, import_od
 
 from drivegain.config import resource_path
 from drivegain.errors import ConfigError
@@ -73,6 +79,46 @@ PDO_INVALID = 0x8000_0000
 def default_eds() -> Path:
     """The shipped EDS of the simulated CiA 402 servo drive."""
     return resource_path("cia402-servo.eds")
+
+
+@functools.lru_cache(maxsize=8)
+def _parsed_od(path: str, mtime_ns: int, size: int) -> ObjectDictionary:
+    """``path`` parsed with node id 0: ``$NODEID`` values hold their offset only."""
+    return import_od(path, 0)
+
+
+def _variables(od: ObjectDictionary) -> Iterator[ODVariable]:
+    for obj in od.values():
+        if isinstance(obj, ODVariable):
+            yield obj
+        else:
+            yield from obj.values()
+
+
+def load_od(eds: Path | str, node_id: int) -> ObjectDictionary:
+    """The object dictionary of ``eds`` for node ``node_id``, as canopen's ``import_od`` gives it.
+
+    A master and its simulated drives need one dictionary per node and side; parsing the EDS
+    (configparser) for each took most of their start-up. The file is parsed once (again when it
+    changes) and each node gets its own deep copy, with the ``$NODEID`` values of this node.
+
+    Raises
+    ------
+    Exception
+        Whatever canopen raises for an unreadable EDS, or ``OSError``.
+    """
+    path = os.fspath(eds)
+    st = os.stat(path)
+    od = copy.deepcopy(_parsed_od(path, st.st_mtime_ns, st.st_size))
+    if od.node_id is not None:  # from the EDS's [DeviceComissioning]: as canopen sets it
+        od.node_id = node_id
+    for var in _variables(od):
+        # canopen resolves "$NODEID+0x180" to 0x180 + node id (offset: parsed with node id 0)
+        if "$NODEID" in (getattr(var, "default_raw", None) or "") and isinstance(var.default, int):
+            var.default += node_id
+        if "$NODEID" in (getattr(var, "value_raw", None) or "") and isinstance(var.value, int):
+            var.value += node_id
+    return od
 
 
 def sync_counter(cycle: int) -> int:

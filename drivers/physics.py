@@ -20,6 +20,7 @@ from __future__ import annotations
 from collections import deque
 from dataclasses import dataclass
 from enum import IntEnum
+from typing import Any
 
 import numpy as np
 import pinocchio as pin
@@ -38,6 +39,30 @@ from drivegain.dynamics.params import (
 
 #: Internal steps of motor state kept for :meth:`RobotPhysics.motor_state_at` (32 ms at 0.5 ms).
 RECENT_STEPS = 64
+#: Rows of current-loop noise drawn at once: one draw per step would cost more than the step's
+#: arithmetic, and the generator releases the interpreter lock on every call (another thread
+#: then holds it). A block is the same sequence of numbers as one draw of n per step.
+NOISE_BLOCK = 1024
+
+
+try:  # the gufunc behind np.linalg.solve for one right-hand side
+    from numpy.linalg import _umath_linalg
+
+    _SOLVE1: Any = _umath_linalg.solve1
+except (ImportError, AttributeError):  # pragma: no cover - another numpy layout
+    _SOLVE1 = None
+
+
+def _solve(m: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """``np.linalg.solve(m, f)`` for a vector ``f``: the same LAPACK routine, without the
+    wrapper's per-call set-up (it dominates at n = 6); a singular ``m`` goes to the wrapper,
+    which raises."""
+    if _SOLVE1 is None:
+        return np.linalg.solve(m, f)
+    x: np.ndarray = _SOLVE1(m, f, signature="dd->d")
+    if not np.isfinite(x).all():
+        return np.linalg.solve(m, f)
+    return x
 
 
 class MotorMode(IntEnum):
@@ -84,6 +109,15 @@ def truth_parameters(robot: Robot, truth: Truth, payload: Payload | None = None)
     if payload is not None:
         chi = with_payload(robot, chi, payload)
     return chi
+
+
+def _sign(x: float) -> float:
+    """``np.sign`` of a float (0 at 0, NaN for NaN)."""
+    if x > 0.0:
+        return 1.0
+    if x < 0.0:
+        return -1.0
+    return x * 0.0 if x != x else 0.0
 
 
 class Dynamics:
@@ -134,18 +168,23 @@ class Dynamics:
         """Coriolis, centrifugal, gravity, friction and offset torques (n,), N·m."""
         h = pin.nle(self.model, self.data, q, qd) + self.fv * qd + self.fc * np.sign(qd)
         h = h + self.offset
+        if not self.couplings:
+            return h
+        # Python floats: the same IEEE operations as numpy's scalars, without their overhead
+        v = qd.tolist()
+        hl = h.tolist()
         for m, o, fvm, fcm in self.couplings:
-            s_sum = np.sign(qd[o] + qd[m])
-            h[o] += fvm * qd[m]
-            h[m] += fvm * qd[o]
+            s_sum = _sign(v[o] + v[m])
+            hl[o] += fvm * v[m]
+            hl[m] += fvm * v[o]
             if self.form is WristFriction.PHYSICAL:
-                h[o] += fcm * s_sum
-                h[m] += fcm * s_sum
+                hl[o] += fcm * s_sum
+                hl[m] += fcm * s_sum
             else:  # eq. (22) as printed
-                s_m = np.sign(qd[m])
-                h[o] += fcm * s_m
-                h[m] += fcm * (s_sum - s_m)
-        return h
+                s_m = _sign(v[m])
+                hl[o] += fcm * s_m
+                hl[m] += fcm * (s_sum - s_m)
+        return np.array(hl)
 
     def inverse(self, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray) -> np.ndarray:
         """Joint torques (n,) that produce ``qdd`` at (q, qd)."""
@@ -230,6 +269,12 @@ class RobotPhysics:
         self.cpr = np.array([j.encoder_counts for j in robot.joints], dtype=float) / (2 * np.pi)
         self.noise_std = noise_nm / np.abs(self.gains)
         self.rng = rng
+        self._noise_rows = np.zeros((0, self.n))
+        self._zeros = np.zeros(self.n)
+        self._zeros.flags.writeable = False
+        self._noise_at = 0
+        self._kt_t = np.ascontiguousarray(self.k.T)
+        self._neg_i_max = -np.asarray(loop.i_max, float)
         self.q = np.array(q0, dtype=float)
         self.qd = np.zeros(self.n)
         self.step_index = 0
@@ -241,6 +286,9 @@ class RobotPhysics:
         self._to = xm.copy()
         self._t_latch = np.zeros(self.n)
         self._span = np.full(self.n, 1.0)
+        self._slope = (self._to - self._from) / self._span  # setpoint speed while interpolating
+        self._diff = self._to - self._from
+        self._uniform = True  # every motor latched at one instant over one span (scalar path)
         self._qs_v = np.zeros(self.n)
         self._qs_pos = xm.copy()
         self._qs_decel = np.full(self.n, np.inf)
@@ -299,7 +347,7 @@ class RobotPhysics:
         return np.rint(self.motor_positions() * self.cpr).astype(np.int64)
 
     def _measured(self) -> np.ndarray:
-        return np.rint(self.motor_positions() * self.cpr) / self.cpr
+        return np.rint(self.k @ self.q * self.cpr) / self.cpr
 
     @property
     def any_powered(self) -> bool:
@@ -324,6 +372,8 @@ class RobotPhysics:
         meas = self._measured()[motor]
         if mode == MotorMode.TRACK:
             self._from[motor] = self._to[motor] = meas
+            self._slope = (self._to - self._from) / self._span
+            self._diff = self._to - self._from
             self._integral[motor] = 0.0
             if old == MotorMode.BRAKED:
                 self._prev_meas[motor] = meas
@@ -364,14 +414,34 @@ class RobotPhysics:
         self._to = np.where(mask, targets, self._to)
         self._t_latch = np.where(mask, now, self._t_latch)
         self._span = np.where(mask, period_s, self._span)
+        self._slope = (self._to - self._from) / self._span
+        self._diff = self._to - self._from
+        self._uniform = bool(
+            (self._t_latch == self._t_latch[0]).all() and (self._span == self._span[0]).all()
+        )
         self._pending = None
 
     # --- evaluation and integration ---------------------------------------------------------
     def _setpoint_at(self, t: float) -> tuple[np.ndarray, np.ndarray]:
-        frac = np.clip((t - self._t_latch) / self._span, 0.0, 1.0)
-        pos = self._from + (self._to - self._from) * frac
-        vel = np.where(frac < 1.0, (self._to - self._from) / self._span, 0.0)
+        if self._uniform:
+            # one fraction for every motor: the same float operations as the vector path
+            f = (t - float(self._t_latch[0])) / float(self._span[0])
+            f = min(max(f, 0.0), 1.0)
+            return self._from + self._diff * f, (self._slope if f < 1.0 else self._zeros)
+        # np.minimum/np.maximum: np.clip's values without its wrapper's cost
+        frac = np.minimum(np.maximum((t - self._t_latch) / self._span, 0.0), 1.0)
+        pos = self._from + self._diff * frac
+        vel = np.where(frac < 1.0, self._slope, 0.0)
         return pos, vel
+
+    def _noise(self) -> np.ndarray:
+        """The next row of standard normal current-loop noise, (n,)."""
+        at = self._noise_at
+        if at == len(self._noise_rows):
+            self._noise_rows = self.rng.standard_normal((NOISE_BLOCK, self.n))
+            at = 0
+        self._noise_at = at + 1
+        return self._noise_rows[at]
 
     def evaluate(self) -> StepOutput:
         """Controller outputs and acceleration for the step starting now (cached until the
@@ -386,20 +456,27 @@ class RobotPhysics:
         meas = self._measured()
         vel = (meas - self._prev_meas) / self.dt
         powered = self._powered
+        loop = self.loop
         err = sp - meas
-        ev = self.loop.kp * err + v_ff - vel
-        i_ref = self.loop.kv * ev + self._integral
-        i_ref = np.where(powered, np.clip(i_ref, -self.loop.i_max, self.loop.i_max), 0.0)
-        noise = self.rng.standard_normal(n) * self.noise_std
-        i_act = np.where(powered, i_ref + noise, 0.0)
-        tau = self.k.T @ (self.kt * i_act)
+        ev = loop.kp * err + v_ff - vel
+        i_ref = loop.kv * ev + self._integral
+        i_ref = np.minimum(np.maximum(i_ref, self._neg_i_max), loop.i_max)
+        noise = self._noise() * self.noise_std
+        if self._all_powered:  # np.where(powered, x, 0) is x: skip the copies
+            i_act = i_ref + noise
+            following_error = err
+        else:
+            i_ref = np.where(powered, i_ref, 0.0)
+            i_act = np.where(powered, i_ref + noise, 0.0)
+            following_error = np.where(powered, err, 0.0)
+        tau = self._kt_t @ (self.kt * i_act)
         if self._any_powered:
             qdd = self._forward(tau)
         else:
             qdd = np.zeros(n)
         out = StepOutput(
             setpoint=sp,
-            following_error=np.where(powered, err, 0.0),
+            following_error=following_error,
             current_reference=i_ref,
             current=i_act,
             tau=tau,
@@ -413,7 +490,7 @@ class RobotPhysics:
         m = self.dyn.mass_matrix(self.q)
         f = tau - self.dyn.bias(self.q, self.qd)
         if self._all_powered:
-            return np.linalg.solve(m, f)
+            return _solve(m, f)
         # Locked motor coordinates: solve in x = K q on the free ones only.
         free = self._powered
         m_motor = self.kinv.T @ m @ self.kinv
@@ -459,10 +536,11 @@ class RobotPhysics:
             # Conditional integration: the integral holds while the current saturates.
             saturated = np.abs(out.current_reference) >= self.loop.i_max
             grown = self._integral + self.loop.ki * ev * self.dt
-            self._integral = np.where(powered, np.where(saturated, self._integral, grown), 0.0)
+            held = np.where(saturated, self._integral, grown)
+            self._integral = held if self._all_powered else np.where(powered, held, 0.0)
             self._prev_meas = meas
-            self._i_sum = self._i_sum + out.current_reference
-            self._tau_sum = self._tau_sum + out.tau
+            self._i_sum += out.current_reference
+            self._tau_sum += out.tau
             self._i_steps += 1
             self.qd = self.qd + out.qdd * self.dt
             if not self._all_powered:

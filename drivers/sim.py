@@ -38,7 +38,6 @@ from typing import Any
 import can
 import canopen
 import numpy as np
-from canopen.objectdictionary import import_od
 
 from drivegain.config import load_payload, load_truth
 from drivegain.config.robot import Robot, WristFriction
@@ -200,7 +199,7 @@ class SimulatedCell:
         self.clock = CellClock(self.guard, LockstepClock() if shared else None)
         self.drives: dict[int, SimDrive] = {}
         for j, joint in enumerate(robot.joints):
-            od = import_od(str(self.eds), joint.node_id)
+            od = ob.load_od(self.eds, joint.node_id)
             kt = abs(self.truth.gains[j] / joint.gear_ratio)
             window = FOLLOWING_ERROR_WINDOW_RAD * ratios[j] * self._cpr[j]
             decel = QUICK_STOP_FACTOR * joint.acceleration_limit * ratios[j] * self._cpr[j]
@@ -502,6 +501,7 @@ class SimulatedCell:
             ph.advance(math.ceil((latched + self.period_s) / self.dt) - ph.step_index)
 
     def _send_tpdos(self, network: canopen.Network) -> None:
+        due: list[can.Message] = []
         for drive in self.drives.values():
             for number, cob_id, payload in drive.tpdo_frames():
                 if number in drive.tpdo_dropped:
@@ -513,7 +513,19 @@ class SimulatedCell:
                         functools.partial(self._send_late, cob_id, payload),
                     )
                 else:
-                    network.send_message(cob_id, payload)
+                    due.append(
+                        can.Message(is_extended_id=False, arbitration_id=cob_id, data=payload)
+                    )
+        if not due:
+            return
+        # The frames network.send_message would make, sent under one hold of its lock: a TPDO
+        # burst is the cell's most frequent send.
+        bus = network.bus
+        assert bus is not None
+        with network.send_lock:
+            for msg in due:
+                bus.send(msg)
+        network.check()
 
     def catch_up(self) -> None:
         """Realtime clock: integrate up to the present (caller holds the physics lock)."""

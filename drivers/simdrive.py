@@ -15,7 +15,7 @@ Every bus callback runs in the simulated bus's notifier thread and is wrapped by
 from __future__ import annotations
 
 import struct
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from enum import IntEnum
 from typing import TYPE_CHECKING, Any
 
@@ -96,6 +96,11 @@ class _ActivePdo:
     entries: tuple[_Mapped, ...]
     packer: struct.Struct
     sync_count: int = 0
+    #: (index, subindex) of every mapped entry, in order.
+    keys: tuple[tuple[int, int], ...] = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.keys = tuple((e.index, e.subindex) for e in self.entries)
 
 
 class DriveNode(canopen.LocalNode):
@@ -416,8 +421,7 @@ class SimDrive:
             if len(data) < pdo.packer.size:
                 self.send_emcy(0x8210)  # PDO not processed due to length error
                 return
-            values = pdo.packer.unpack_from(data)
-            decoded = {(e.index, e.subindex): v for e, v in zip(pdo.entries, values, strict=True)}
+            decoded = dict(zip(pdo.keys, pdo.packer.unpack_from(data), strict=True))
             if pdo.trans_type <= 240:
                 self._rpdo_pending.update(decoded)
             else:
@@ -572,10 +576,10 @@ class SimDrive:
             pdo.sync_count += 1
             if pdo.sync_count % pdo.trans_type:
                 continue
-            values = [
-                e.fit(live[e.index] if e.index in live else int(self.stored(e.index, e.subindex)))
-                for e in pdo.entries
-            ]
+            values = []
+            for e in pdo.entries:
+                v = live[e.index] if e.index in live else int(self.stored(e.index, e.subindex))
+                values.append(v if e.lo <= v <= e.hi else e.fit(v))
             frames.append((pdo.number, pdo.cob_id, pdo.packer.pack(*values)))
         return frames
 

@@ -18,6 +18,7 @@ import fsspec
 from fsspec.implementations.local import LocalFileSystem
 
 from drivegain.errors import InputError
+from drivegain.fileio import reading
 
 
 def filesystem(location: str) -> tuple[Any, str]:
@@ -76,15 +77,8 @@ def read_bytes(location: str) -> bytes:
         The file does not exist or cannot be read (names it).
     """
     fs, path = filesystem(location)
-    try:
-        with fs.open(path, "rb") as fh:
-            return bytes(fh.read())
-    except FileNotFoundError:
-        raise InputError("file not found", file=location) from None
-    except IsADirectoryError:
-        raise InputError("is a folder, expected a file", file=location) from None
-    except OSError as exc:
-        raise InputError(f"cannot read ({exc})", file=location) from None
+    with reading(location), fs.open(path, "rb") as fh:
+        return bytes(fh.read())
 
 
 def write_atomic(location: str, data: bytes) -> None:

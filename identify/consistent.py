@@ -33,7 +33,8 @@ from drivegain.config.robot import Robot
 from drivegain.dynamics.base import BaseParameters
 from drivegain.dynamics.params import N_INERTIAL, N_PER_JOINT, inertial_slice, n_standard
 from drivegain.errors import IdentificationError, InputError
-from drivegain.identify.cases import PayloadEstimate, predictions, torque_quality
+from drivegain.identify.cases import PayloadEstimate, predictions
+from drivegain.identify.crossval import prediction_quality, split_runs
 from drivegain.identify.design import Design, stacked_factor
 
 #: Gain handling of the consistent fit: keep the given/identified gains, or solve them jointly
@@ -348,10 +349,7 @@ def fit_consistent(
     theta = bmat @ chi_v
     u_v = np.concatenate([theta, *pays, g_v])
     constraints = _constraints(robot, chi_v, pays, loaded, g_v, signs, free_gains)
-    pairs = predictions(designs, g_v, theta, pays)
-    r2, rel = torque_quality(pairs)
-    y = np.concatenate([p[0] for p in pairs])
-    res = y - np.concatenate([p[1] for p in pairs])
+    quality = prediction_quality(predictions(designs, g_v, theta, pays))
     return ConsistentFit(
         standard=chi_v,
         base=theta,
@@ -359,10 +357,10 @@ def fit_consistent(
         gains=g_v,
         gain_mode=gain_mode,
         constraints=constraints,
-        residual_norm=float(np.linalg.norm(res)),
-        relative_error=float(np.linalg.norm(res) / np.linalg.norm(y)),
-        r2=r2,
-        joint_relative=rel,
+        residual_norm=quality.residual_norm,
+        relative_error=quality.relative_error,
+        r2=quality.r2,
+        joint_relative=quality.joint_relative,
         objective_ratio=float(np.sum((r @ u_v) ** 2) / max(nu_ref, np.finfo(float).tiny)),
         status=str(problem.status),
         solver=solver,
@@ -472,20 +470,13 @@ def cross_validate_consistent(
     """
     from drivegain.identify.cases import fit_case
 
-    train, test = [], []
-    for d in designs:
-        split = round(d.rows * (1.0 - fraction))
-        train.append(d.subset(slice(0, split)))
-        test.append(d.subset(slice(split, None)))
+    train, test = split_runs(designs, fraction)
     ref = fit_case("cv", train, gains, bp.names)
     fit = fit_consistent(train, bp, robot, gains, ref.sigma_joint, **kwargs)  # type: ignore[arg-type]
-    pairs = predictions(test, fit.gains, fit.base, fit.payloads)
-    r2, rel = torque_quality(pairs)
-    y = np.concatenate([p[0] for p in pairs])
-    res = y - np.concatenate([p[1] for p in pairs])
+    held_out = prediction_quality(predictions(test, fit.gains, fit.base, fit.payloads))
     return ConsistentCV(
-        relative_error=float(np.linalg.norm(res) / np.linalg.norm(y)),
-        r2=r2,
-        joint_relative=rel,
+        relative_error=held_out.relative_error,
+        r2=held_out.r2,
+        joint_relative=held_out.joint_relative,
         train_relative_error=fit.relative_error,
     )

@@ -33,6 +33,7 @@ from drivegain.config.payload import Payload, load_payload
 from drivegain.config.robot import Robot, load_robot
 from drivegain.dynamics.transmission import motor_to_joint
 from drivegain.errors import DataError, InputError
+from drivegain.fileio import reading
 from drivegain.formats.log import RunMetadata
 from drivegain.formats.logwriter import write_run
 
@@ -65,16 +66,8 @@ def read_csv_columns(path: str | Path, n_columns: int) -> tuple[list[str], np.nd
         ragged row, non-numeric or non-finite value, no data.
     """
     p = Path(path)
-    try:
+    with reading(p, error=DataError, expected="a CSV file"):
         text = p.read_text(encoding="utf-8-sig")
-    except FileNotFoundError:
-        raise DataError("file not found", file=p) from None
-    except IsADirectoryError:
-        raise DataError("is a directory, expected a CSV file", file=p) from None
-    except UnicodeDecodeError:
-        raise DataError("not a UTF-8 text file", file=p) from None
-    except OSError as exc:
-        raise DataError(f"cannot read: {exc.strerror}", file=p) from None
     lines = text.splitlines()
     while lines and not lines[-1].strip():
         lines.pop()

@@ -42,6 +42,50 @@ class CrossValidation:
     train_relative_error: float
 
 
+@dataclass(frozen=True)
+class PredictionQuality:
+    """How computed torques match measured ones, all designs together.
+
+    Attributes
+    ----------
+    r2, joint_relative
+        Per joint: R² and ‖ρ_j‖/‖Y_j‖ (:func:`~drivegain.identify.cases.torque_quality`), (n,).
+    residual_norm
+        ‖ρ‖, N·m, over every sample and joint.
+    relative_error
+        ‖ρ‖/‖Y‖.
+    """
+
+    r2: np.ndarray
+    joint_relative: np.ndarray
+    residual_norm: float
+    relative_error: float
+
+
+def prediction_quality(pairs: Sequence[tuple[np.ndarray, np.ndarray]]) -> PredictionQuality:
+    """Quality of (measured, computed) torque pairs, N·m, as
+    :func:`~drivegain.identify.cases.predictions` returns them."""
+    r2, rel = torque_quality(pairs)
+    y = np.concatenate([p[0] for p in pairs])
+    res = y - np.concatenate([p[1] for p in pairs])
+    return PredictionQuality(
+        r2=r2,
+        joint_relative=rel,
+        residual_norm=float(np.linalg.norm(res)),
+        relative_error=float(np.linalg.norm(res) / np.linalg.norm(y)),
+    )
+
+
+def split_runs(designs: Sequence[Design], fraction: float) -> tuple[list[Design], list[Design]]:
+    """Each run's first ``1 − fraction`` of rows (to fit) and its held-out end (to predict)."""
+    train, test = [], []
+    for d in designs:
+        split = round(d.rows * (1.0 - fraction))
+        train.append(d.subset(slice(0, split)))
+        test.append(d.subset(slice(split, None)))
+    return train, test
+
+
 def cross_validate(
     designs: Sequence[Design],
     gains: np.ndarray,
@@ -73,21 +117,14 @@ def cross_validate(
     """
     if not 0.0 < fraction < 1.0:
         raise InputError(f"must be in (0, 1), got {fraction}", key="cv_fraction")
-    train, test = [], []
-    for d in designs:
-        split = round(d.rows * (1.0 - fraction))
-        train.append(d.subset(slice(0, split)))
-        test.append(d.subset(slice(split, None)))
+    train, test = split_runs(designs, fraction)
     fit = fit_case("cv", train, gains, base_names)
     chi, payloads = fit.coefficients()
-    pairs = predictions(test, fit.gains, chi, payloads)
-    r2, rel = torque_quality(pairs)
-    y = np.concatenate([p[0] for p in pairs])
-    res = y - np.concatenate([p[1] for p in pairs])
+    held_out = prediction_quality(predictions(test, fit.gains, chi, payloads))
     return CrossValidation(
         fraction=fraction,
-        r2=r2,
-        joint_relative=rel,
-        relative_error=float(np.linalg.norm(res) / np.linalg.norm(y)),
+        r2=held_out.r2,
+        joint_relative=held_out.joint_relative,
+        relative_error=held_out.relative_error,
         train_relative_error=fit.relative_error,
     )

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -13,6 +14,16 @@ SHARED = REPO.parent / "shared"
 @pytest.fixture(scope="session")
 def repo_root() -> Path:
     return REPO
+
+
+@pytest.fixture(scope="session")
+def single_blas_thread() -> Iterator[None]:
+    """One OpenBLAS thread for the session, as the identify command and the validation study
+    run: its threads thrash on the shared, busy cores. Folders of numerical tests use it."""
+    from drivegain.identify.blas import limited_blas_threads
+
+    with limited_blas_threads(1):
+        yield
 
 
 @pytest.fixture(scope="session")

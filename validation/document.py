@@ -325,17 +325,18 @@ def _methods_section() -> str:
     return "\n".join(L)
 
 
+def _figure_section(title: str, alt: str, src: str) -> list[str]:
+    """The first lines of a section led by one figure: heading, image (``alt``, ``src``)."""
+    return [f"## {title}", "", f"![{alt}]({src})", ""]
+
+
 def _gain_errors_section(
     summary: dict[str, Any], joints: Sequence[str], fig: Callable[[str], str]
 ) -> str:
     """Gain errors per scenario: RMS error, ratio to ours, bias ± spread, α chosen."""
     scen = _scenarios(summary)
-    L: list[str] = []
+    L = _figure_section("Gain errors (Monte Carlo)", "gain errors", fig("gain-errors.png"))
     add = L.append
-    add("## Gain errors (Monte Carlo)")
-    add("")
-    add(f"![gain errors]({fig('gain-errors.png')})")
-    add("")
     for sc in scen:
         st = summary[sc.key]["methods"]
         add(f"### {sc.label} ({summary[sc.key]['seeds']} seeds)")
@@ -390,12 +391,8 @@ def _coverage_section(
     summary = data["monte_carlo"]
     tab = data["tables"]
     scen = _scenarios(summary)
-    L: list[str] = []
+    L = _figure_section("Coverage of the reported 2σ", "coverage", fig("coverage.png"))
     add = L.append
-    add("## Coverage of the reported 2σ")
-    add("")
-    add(f"![coverage]({fig('coverage.png')})")
-    add("")
     rows = []
     for sc in scen:
         st = summary[sc.key]["methods"]
@@ -474,12 +471,12 @@ def _payload_section(summary: dict[str, Any], fig: Callable[[str], str]) -> str:
     """Payload errors of Case 1 against Case 2, and of the other gain estimators."""
     scen = _scenarios(summary)
     main = scen[0]
-    L: list[str] = []
+    L = _figure_section(
+        "Payload parameters: Case 1 against Case 2 (Monte Carlo)",
+        "payload errors",
+        fig("payload-errors.png"),
+    )
     add = L.append
-    add("## Payload parameters: Case 1 against Case 2 (Monte Carlo)")
-    add("")
-    add(f"![payload errors]({fig('payload-errors.png')})")
-    add("")
     add(
         "RMS relative error over the seeds (% of the true value) of each payload parameter, "
         "identified by IDIM-WLS with the a priori gains (Case 1) or with our identified gains "

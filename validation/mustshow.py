@@ -62,24 +62,28 @@ def _fmt_list(xs: Sequence[float]) -> str:
     return " ".join("–" if not math.isfinite(x) else f"{x:.2f}" for x in xs)
 
 
+def _coverage_check(scenario: str, what: str, stats: dict[str, Any], key: str) -> Check:
+    """The pooled ±2σ coverage ``stats[key]`` (with its interval ``stats[key + "_ci"]``)
+    against :data:`COVERAGE_TARGET`; ``what`` names the estimates (gain, payload)."""
+    lo, hi = COVERAGE_TARGET
+    cov = stats.get(key, math.nan)
+    ci = stats.get(f"{key}_ci", [math.nan, math.nan])
+    return Check(
+        scenario,
+        f"{what} coverage {100 * lo:.0f}-{100 * hi:.0f} %",
+        f"{100 * cov:.1f} [{100 * ci[0]:.1f}, {100 * ci[1]:.1f}]",
+        _band(cov, lo, hi),
+    )
+
+
 def scenario_checks(sc: Scenario, summary: dict[str, Any]) -> list[Check]:
     """The targets of issue 17 for one scenario's summary (``scenario_summary``)."""
     st = summary["methods"]
     ours = st[OURS]
     out: list[Check] = []
     add = out.append
-    lo, hi = COVERAGE_TARGET
     zlo, zhi = Z_SPREAD_TARGET
-    cov = ours.get("coverage_all", math.nan)
-    ci = ours.get("coverage_all_ci", [math.nan, math.nan])
-    add(
-        Check(
-            sc.key,
-            f"gain coverage {100 * lo:.0f}-{100 * hi:.0f} %",
-            f"{100 * cov:.1f} [{100 * ci[0]:.1f}, {100 * ci[1]:.1f}]",
-            _band(cov, lo, hi),
-        )
-    )
+    add(_coverage_check(sc.key, "gain", ours, "coverage_all"))
     zs = ours.get("z_std", [])
     add(Check(sc.key, f"gain z spread {zlo}-{zhi}", _fmt_list(zs), _all_in(zs, zlo, zhi)))
     zm = ours.get("z_mean", [])
@@ -91,16 +95,7 @@ def scenario_checks(sc: Scenario, summary: dict[str, Any]) -> list[Check]:
             _all_in([abs(z) for z in zm], 0.0, Z_MEAN_MAX),
         )
     )
-    pcov = ours.get("payload_coverage_all", math.nan)
-    pci = ours.get("payload_coverage_all_ci", [math.nan, math.nan])
-    add(
-        Check(
-            sc.key,
-            f"payload coverage {100 * lo:.0f}-{100 * hi:.0f} %",
-            f"{100 * pcov:.1f} [{100 * pci[0]:.1f}, {100 * pci[1]:.1f}]",
-            _band(pcov, lo, hi),
-        )
-    )
+    add(_coverage_check(sc.key, "payload", ours, "payload_coverage_all"))
     pz = list(ours.get("payload_b_z_std", [])) + list(ours.get("payload_c_z_std", []))
     finite = [z for z in pz if math.isfinite(z)]
     add(

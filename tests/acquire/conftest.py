@@ -1,4 +1,5 @@
-"""Helpers of the acquire tests: short trajectories, simulated-cell configs, leak checks."""
+"""Helpers of the acquire tests: short trajectories, simulated-cell configs, in-process daemons,
+leak checks."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -16,6 +18,8 @@ from typing import Any
 import numpy as np
 import pytest
 
+from drivegain.acquire.config import AcquisitionConfig, load_acquisition_config
+from drivegain.acquire.daemon import Daemon
 from drivegain.config import load_robot, resource_path
 from drivegain.excite.trajectory import save_trajectory, trajectory_document
 from drivegain.formats.fourier import FourierTrajectory
@@ -156,6 +160,67 @@ def acquire_cli() -> SimpleNamespace:
     return SimpleNamespace(
         start=start_acquire, wait_for_cycles=wait_for_cycles, assert_at_rest=assert_at_rest
     )
+
+
+class Notes:
+    """A fake systemd notifier that keeps what it was told."""
+
+    def __init__(self) -> None:
+        self.messages: list[str] = []
+
+    def notify(self, state: str) -> None:
+        self.messages.append(state)
+
+
+def wait_until(cond: Callable[[], Any], timeout: float = 30.0, what: str = "condition") -> Any:
+    """Poll ``cond`` every 50 ms until it returns a true value, and return that value; fail the
+    test after ``timeout`` seconds (a guard against a hang, not a timing check)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = cond()
+        if value:
+            return value
+        time.sleep(0.05)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+@contextmanager
+def serving(
+    d: Daemon,
+    *,
+    stop: str = "test",
+    join_s: float = 60.0,
+    target: Callable[[], None] | None = None,
+) -> Iterator[threading.Thread]:
+    """Serve ``d`` on a thread (``target``, default ``d.serve``); on leaving, request its
+    shutdown with the reason ``stop`` and join the thread for up to ``join_s`` seconds."""
+    th = threading.Thread(target=target or d.serve, name="test-daemon")
+    th.start()
+    try:
+        yield th
+    finally:
+        d.shutdown.request(stop)
+        th.join(join_s)
+
+
+@pytest.fixture
+def daemon_kit(tmp_path: Path, make_config: Callable[..., Path]) -> SimpleNamespace:
+    """Helpers of the in-process daemon tests.
+
+    ``config(extra="", sock=None)``: the simulated cell's acquisition config with a ``[daemon]``
+    table (``socket`` = ``sock``, default ``tmp_path/ctl.sock``; runs in ``tmp_path/runs``;
+    ``extra`` further keys) and the socket path; ``serve``: :func:`serving`; ``wait``:
+    :func:`wait_until`; ``Notes``: a notifier that keeps its messages.
+    """
+
+    def config(extra: str = "", sock: Path | None = None) -> tuple[AcquisitionConfig, Path]:
+        sock = sock if sock is not None else tmp_path / "ctl.sock"
+        text = f'socket = "{sock}"\noutput_dir = "{tmp_path / "runs"}"'
+        if extra:
+            text += f"\n{extra}"
+        return load_acquisition_config(make_config(daemon=text)), sock
+
+    return SimpleNamespace(config=config, serve=serving, wait=wait_until, Notes=Notes)
 
 
 def _leaky_threads() -> set[threading.Thread]:

@@ -5,10 +5,9 @@ from __future__ import annotations
 import json
 import logging
 import socket
-import threading
-import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import pytest
@@ -26,16 +25,6 @@ class _Quiet:
         pass
 
 
-def _wait(cond: Callable[[], Any], timeout: float = 30.0, what: str = "condition") -> Any:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = cond()
-        if value:
-            return value
-        time.sleep(0.05)
-    raise AssertionError(f"timed out waiting for {what}")
-
-
 def _ready(records: list[logging.LogRecord]) -> list[str]:
     return [r.getMessage() for r in records if getattr(r, "event", None) == "ready"]
 
@@ -51,6 +40,7 @@ def ctl(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str, str]:
 def served(
     tmp_path: Path,
     make_config: Callable[..., Path],
+    daemon_kit: SimpleNamespace,
     monkeypatch: pytest.MonkeyPatch,
     caplog: pytest.LogCaptureFixture,
 ) -> Iterator[tuple[Daemon, Path]]:
@@ -59,20 +49,16 @@ def served(
     caplog.set_level(logging.INFO, logger="drivegain.acquire.daemon")
     cfg_path = make_config(daemon=f'socket = "ctl.sock"\noutput_dir = "{tmp_path / "runs"}"')
     d = Daemon(load_acquisition_config(cfg_path), notifier=_Quiet())
-    th = threading.Thread(target=d.serve, name="test-daemon")
-    th.start()
-    try:
-        _wait(lambda: d.rig is not None and d.rig.master is not None, what="the boot")
-        _wait(lambda: _ready(caplog.records), what="the ready line")
+    with daemon_kit.serve(d, join_s=30) as th:
+        daemon_kit.wait(lambda: d.rig is not None and d.rig.master is not None, what="the boot")
+        daemon_kit.wait(lambda: _ready(caplog.records), what="the ready line")
         yield d, cfg_path
-    finally:
-        d.shutdown.request("test")
-        th.join(30)
-        assert not th.is_alive()
+    assert not th.is_alive()
 
 
 def test_status_run_stop_through_the_client(
     served: tuple[Daemon, Path],
+    daemon_kit: SimpleNamespace,
     tmp_path: Path,
     short_trajectory: Path,
     long_trajectory: Path,
@@ -116,7 +102,7 @@ def test_status_run_stop_through_the_client(
     assert code == 0 and out.startswith("running: 1 runs") and "run unloaded:" in out, out
     code, out, err = ctl(capsys, "stop", "--socket", str(sock))
     assert code == 0 and out == "stopping unloaded\n", err
-    status = _wait(
+    status = daemon_kit.wait(
         lambda: (
             (s := json.loads(ctl(capsys, "status", "--socket", str(sock), "--json")[1]))["state"]
             == "idle"

@@ -12,66 +12,32 @@ import stat
 import subprocess
 import sys
 import tempfile
-import threading
-import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import pytest
 
-from drivegain.acquire.config import load_acquisition_config
 from drivegain.acquire.daemon import Daemon, read_reply, request
 from drivegain.acquire.session import Session
 from drivegain.drivers import gcfreeze
 from drivegain.formats.logreader import read_run
 
 
-class Notes:
-    """A fake systemd notifier that keeps what it was told."""
-
-    def __init__(self) -> None:
-        self.messages: list[str] = []
-
-    def notify(self, state: str) -> None:
-        self.messages.append(state)
-
-
-def _wait(cond: Callable[[], Any], timeout: float = 30.0, what: str = "condition") -> Any:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = cond()
-        if value:
-            return value
-        time.sleep(0.05)
-    raise AssertionError(f"timed out waiting for {what}")
-
-
 @pytest.fixture
-def daemon(
-    tmp_path: Path, make_config: Callable[..., Path]
-) -> Iterator[tuple[Daemon, Path, Notes]]:
-    sock = tmp_path / "ctl.sock"
-    cfg = load_acquisition_config(
-        make_config(
-            daemon=f'socket = "{sock}"\noutput_dir = "{tmp_path / "runs"}"\nwatchdog_s = 0.05'
-        )
-    )
-    notes = Notes()
+def daemon(daemon_kit: SimpleNamespace) -> Iterator[tuple[Daemon, Path, Any]]:
+    cfg, sock = daemon_kit.config("watchdog_s = 0.05")
+    notes = daemon_kit.Notes()
     d = Daemon(cfg, notifier=notes)
-    th = threading.Thread(target=d.serve, name="test-daemon")
-    th.start()
-    try:
-        _wait(lambda: "READY=1" in notes.messages, what="READY=1")
+    with daemon_kit.serve(d, join_s=30) as th:
+        daemon_kit.wait(lambda: "READY=1" in notes.messages, what="READY=1")
         yield d, sock, notes
-    finally:
-        d.shutdown.request("test")
-        th.join(30)
-        assert not th.is_alive()
+    assert not th.is_alive()
 
 
 def test_socket_is_private_and_malformed_requests_get_errors(
-    daemon: tuple[Daemon, Path, Notes],
+    daemon: tuple[Daemon, Path, Any], daemon_kit: SimpleNamespace
 ) -> None:
     _, sock, notes = daemon
     mode = stat.S_IMODE(sock.stat().st_mode)
@@ -99,24 +65,27 @@ def test_socket_is_private_and_malformed_requests_get_errors(
         status = read_reply(s)
     assert status["ok"] and status["state"] == "idle" and status["runs"] == 0
     assert any(m.startswith("STATUS=idle") for m in notes.messages)
-    _wait(lambda: "WATCHDOG=1" in notes.messages, what="WATCHDOG=1")
+    daemon_kit.wait(lambda: "WATCHDOG=1" in notes.messages, what="WATCHDOG=1")
 
 
 def test_one_run_at_a_time_and_stop(
-    daemon: tuple[Daemon, Path, Notes], long_trajectory: Path, short_trajectory: Path
+    daemon: tuple[Daemon, Path, Any],
+    daemon_kit: SimpleNamespace,
+    long_trajectory: Path,
+    short_trajectory: Path,
 ) -> None:
     _, sock, _ = daemon
     first = request(sock, {"cmd": "run", "trajectory": str(long_trajectory), "label": "first"})
     assert first["ok"], first
     second = request(sock, {"cmd": "run", "trajectory": str(short_trajectory), "label": "second"})
     assert second["ok"] is False and "already in progress (first)" in second["error"]
-    status = _wait(
+    status = daemon_kit.wait(
         lambda: (s := request(sock, {"cmd": "status"}))["run"] and s["run"]["cycle"] > 200 and s,
         what="the run to move",
     )
     assert status["state"] == "running" and status["run"]["label"] == "first"
     assert request(sock, {"cmd": "stop"}) == {"ok": True, "stopping": "first"}
-    status = _wait(
+    status = daemon_kit.wait(
         lambda: (s := request(sock, {"cmd": "status"}))["state"] == "idle" and s, what="idle"
     )
     last = status["last_run"]
@@ -127,19 +96,19 @@ def test_one_run_at_a_time_and_stop(
     # and the next run is accepted and completes
     again = request(sock, {"cmd": "run", "trajectory": str(short_trajectory)})
     assert again["ok"] and again["label"] == "unloaded"
-    status = _wait(
+    status = daemon_kit.wait(
         lambda: (s := request(sock, {"cmd": "status"}))["runs"] == 2 and s, what="second run"
     )
     assert status["last_run"]["state"] == "finished"
 
 
 def test_idle_monitoring_notices_lost_drives_and_recovers(
-    daemon: tuple[Daemon, Path, Notes], short_trajectory: Path
+    daemon: tuple[Daemon, Path, Any], daemon_kit: SimpleNamespace, short_trajectory: Path
 ) -> None:
     d, sock, notes = daemon
     assert d.rig is not None and d.rig.cell is not None
     d.rig.cell.stop()  # the drives lose power: no more heartbeats
-    status = _wait(
+    status = daemon_kit.wait(
         lambda: (s := request(sock, {"cmd": "status"}))["state"] == "fault" and s,
         what="the idle fault",
     )
@@ -148,10 +117,22 @@ def test_idle_monitoring_notices_lost_drives_and_recovers(
     # a run request boots the cell again
     reply = request(sock, {"cmd": "run", "trajectory": str(short_trajectory)})
     assert reply["ok"], reply
-    status = _wait(
+    status = daemon_kit.wait(
         lambda: (s := request(sock, {"cmd": "status"}))["runs"] == 1 and s, what="the run"
     )
     assert status["state"] == "idle" and status["last_run"]["state"] == "finished"
+
+
+def _as_nobody(python: str, code: str) -> subprocess.CompletedProcess[bytes]:
+    """Run the Python ``code`` as the user nobody (65534), with the system's ``python``."""
+    return subprocess.run(
+        [python, "-c", code],
+        user=65534,
+        cwd="/",
+        env={"PATH": "/usr/bin:/bin"},
+        capture_output=True,
+        timeout=30,
+    )
 
 
 def test_service_process_systemd_protocol_and_other_users(
@@ -187,33 +168,17 @@ def test_service_process_systemd_protocol_and_other_users(
         system_python = shutil.which("python3", path="/usr/bin:/bin")
         if os.getuid() == 0 and system_python:
             # another user (nobody) on the same machine
-            other = subprocess.run(
-                [
-                    system_python,
-                    "-c",
-                    f"import socket; s = socket.socket(socket.AF_UNIX); s.connect({str(sock)!r})",
-                ],
-                user=65534,
-                cwd="/",
-                env={"PATH": "/usr/bin:/bin"},
-                capture_output=True,
-                timeout=30,
+            other = _as_nobody(
+                system_python,
+                f"import socket; s = socket.socket(socket.AF_UNIX); s.connect({str(sock)!r})",
             )
             assert other.returncode != 0 and b"PermissionError" in other.stderr
             # even with the file mode opened up, the daemon checks the peer's uid itself
             os.chmod(sock, 0o666)
-            other = subprocess.run(
-                [
-                    system_python,
-                    "-c",
-                    "import socket; s = socket.socket(socket.AF_UNIX); "
-                    f"s.connect({str(sock)!r}); print(s.recv(4096).decode())",
-                ],
-                user=65534,
-                cwd="/",
-                env={"PATH": "/usr/bin:/bin"},
-                capture_output=True,
-                timeout=30,
+            other = _as_nobody(
+                system_python,
+                "import socket; s = socket.socket(socket.AF_UNIX); "
+                f"s.connect({str(sock)!r}); print(s.recv(4096).decode())",
             )
             assert json.loads(other.stdout) == {"ok": False, "error": "permission denied"}
             os.chmod(sock, 0o600)
@@ -235,24 +200,18 @@ def test_service_process_systemd_protocol_and_other_users(
 
 
 def test_shutdown_during_a_run_brings_it_to_rest_first(
-    tmp_path: Path, make_config: Callable[..., Path], long_trajectory: Path
+    daemon_kit: SimpleNamespace, long_trajectory: Path
 ) -> None:
-    sock = tmp_path / "ctl.sock"
-    cfg = load_acquisition_config(
-        make_config(daemon=f'socket = "{sock}"\noutput_dir = "{tmp_path / "runs"}"')
-    )
-    d = Daemon(cfg, notifier=Notes())
-    th = threading.Thread(target=d.serve, name="test-daemon")
-    th.start()
-    try:
-        _wait(lambda: sock.exists(), what="the socket")
-        _wait(lambda: d.rig is not None and d.rig.master is not None, what="the boot")
+    cfg, sock = daemon_kit.config()
+    d = Daemon(cfg, notifier=daemon_kit.Notes())
+    with daemon_kit.serve(d, stop="SIGTERM") as th:  # what systemctl stop sends
+        daemon_kit.wait(lambda: sock.exists(), what="the socket")
+        daemon_kit.wait(lambda: d.rig is not None and d.rig.master is not None, what="the boot")
         reply = request(sock, {"cmd": "run", "trajectory": str(long_trajectory)})
         assert reply["ok"], reply
-        _wait(lambda: d.active is not None and d.active.session.cycle > 200, what="motion")
-    finally:
-        d.shutdown.request("SIGTERM")  # what systemctl stop sends
-        th.join(60)
+        daemon_kit.wait(
+            lambda: d.active is not None and d.active.session.cycle > 200, what="motion"
+        )
     assert not th.is_alive() and not sock.exists()
     log = read_run(reply["out"])
     assert not log.truncated
@@ -260,8 +219,7 @@ def test_shutdown_during_a_run_brings_it_to_rest_first(
 
 
 def test_the_freeze_is_held_through_every_run_and_released_when_the_daemon_closes(
-    tmp_path: Path,
-    make_config: Callable[..., Path],
+    daemon_kit: SimpleNamespace,
     short_trajectory: Path,
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
@@ -278,29 +236,21 @@ def test_the_freeze_is_held_through_every_run_and_released_when_the_daemon_close
         seen["run"].append((gcfreeze.holders(), gc.get_freeze_count()))
 
     monkeypatch.setattr(Session, "_loop", observed_loop)
-    sock = tmp_path / "ctl.sock"
-    cfg = load_acquisition_config(
-        make_config(daemon=f'socket = "{sock}"\noutput_dir = "{tmp_path / "runs"}"')
-    )
-    d = Daemon(cfg, notifier=Notes())
-    th = threading.Thread(target=d.serve, name="test-daemon")
-    th.start()
-    try:
-        _wait(lambda: d.rig is not None and d.rig.master is not None, what="the boot")
-        _wait(lambda: sock.exists(), what="the socket")
+    cfg, sock = daemon_kit.config()
+    d = Daemon(cfg, notifier=daemon_kit.Notes())
+    with daemon_kit.serve(d) as th:
+        daemon_kit.wait(lambda: d.rig is not None and d.rig.master is not None, what="the boot")
+        daemon_kit.wait(lambda: sock.exists(), what="the socket")
         for runs in (1, 2):
             reply = request(sock, {"cmd": "run", "trajectory": str(short_trajectory)})
             assert reply["ok"], reply
-            status = _wait(
+            status = daemon_kit.wait(
                 lambda n=runs: (s := request(sock, {"cmd": "status"}))["runs"] == n and s,
                 what=f"run {runs}",
             )
             assert status["state"] == "idle" and status["last_run"]["state"] == "finished"
             # between runs the daemon watches the drives: still frozen
             seen["idle"].append((gcfreeze.holders(), gc.get_freeze_count()))
-    finally:
-        d.shutdown.request("test")
-        th.join(60)
     assert not th.is_alive()
     assert len(seen["run"]) == 4 and len(seen["idle"]) == 2, seen
     assert all(held > base and frozen > 0 for held, frozen in seen["run"] + seen["idle"]), seen

@@ -15,59 +15,35 @@ import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterator
+from contextlib import ExitStack
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import pytest
 
 from drivegain.acquire import request as request_module
-from drivegain.acquire.config import load_acquisition_config
 from drivegain.acquire.daemon import Daemon, read_reply, request
 from drivegain.formats.logreader import read_run
 
 
-class Notes:
-    """A fake systemd notifier that keeps what it was told."""
-
-    def __init__(self) -> None:
-        self.messages: list[str] = []
-
-    def notify(self, state: str) -> None:
-        self.messages.append(state)
-
-
-def _wait(cond: Callable[[], Any], timeout: float = 30.0, what: str = "condition") -> Any:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = cond()
-        if value:
-            return value
-        time.sleep(0.05)
-    raise AssertionError(f"timed out waiting for {what}")
-
-
 @pytest.fixture
 def start_daemon(
-    tmp_path: Path, make_config: Callable[..., Path]
+    tmp_path: Path, daemon_kit: SimpleNamespace
 ) -> Iterator[Callable[..., tuple[Daemon, Path]]]:
     """Start an in-process daemon with extra ``[daemon]`` keys; stopped after the test."""
-    started: list[tuple[Daemon, threading.Thread]] = []
+    threads: list[threading.Thread] = []
+    with ExitStack() as running:
 
-    def start(extra: str = "") -> tuple[Daemon, Path]:
-        sock = tmp_path / f"ctl{len(started)}.sock"
-        text = f'socket = "{sock}"\noutput_dir = "{tmp_path / "runs"}"\n{extra}'
-        d = Daemon(load_acquisition_config(make_config(daemon=text)), notifier=Notes())
-        th = threading.Thread(target=d.serve, name="test-daemon")
-        th.start()
-        started.append((d, th))
-        _wait(lambda: "READY=1" in d.notifier.messages, what="READY=1")
-        return d, sock
+        def start(extra: str = "") -> tuple[Daemon, Path]:
+            cfg, sock = daemon_kit.config(extra, sock=tmp_path / f"ctl{len(threads)}.sock")
+            d = Daemon(cfg, notifier=daemon_kit.Notes())
+            threads.append(running.enter_context(daemon_kit.serve(d)))
+            daemon_kit.wait(lambda: "READY=1" in d.notifier.messages, what="READY=1")
+            return d, sock
 
-    yield start
-    for d, th in started:
-        d.shutdown.request("test")
-        th.join(60)
-        assert not th.is_alive()
+        yield start
+    assert not any(th.is_alive() for th in threads)
 
 
 def _connect(sock: Path, timeout: float = 10.0) -> socket.socket:
@@ -100,7 +76,7 @@ def _read_to_end(s: socket.socket, limit: int = 1 << 26) -> bytes:
 
 
 def test_extra_connections_are_refused_with_one_json_line(
-    start_daemon: Callable[..., tuple[Daemon, Path]],
+    start_daemon: Callable[..., tuple[Daemon, Path]], daemon_kit: SimpleNamespace
 ) -> None:
     d, sock = start_daemon("max_clients = 3")
     held = [_connect(sock) for _ in range(3)]
@@ -114,7 +90,7 @@ def test_extra_connections_are_refused_with_one_json_line(
         assert "too many connections (3 open" in reply["error"]
         assert d.server.refused == 1
         held.pop().close()
-        _wait(lambda: len(d.server.clients) == 2, what="the closed connection to go")
+        daemon_kit.wait(lambda: len(d.server.clients) == 2, what="the closed connection to go")
         assert request(sock, {"cmd": "status"})["ok"]
         assert all(_status_on(s)["ok"] for s in held)  # the others were never disturbed
     finally:
@@ -123,7 +99,7 @@ def test_extra_connections_are_refused_with_one_json_line(
 
 
 def test_a_silent_connection_is_closed_after_the_idle_time_out(
-    start_daemon: Callable[..., tuple[Daemon, Path]],
+    start_daemon: Callable[..., tuple[Daemon, Path]], daemon_kit: SimpleNamespace
 ) -> None:
     d, sock = start_daemon("client_idle_s = 0.3")
     with _connect(sock) as silent, _connect(sock) as chatty:
@@ -134,11 +110,11 @@ def test_a_silent_connection_is_closed_after_the_idle_time_out(
         reply = json.loads(_read_to_end(silent))
         assert reply == {"ok": False, "error": "idle for more than 0.3 s: connection closed"}
         assert _status_on(chatty)["ok"]
-    _wait(lambda: not d.server.clients, what="both connections to go")
+    daemon_kit.wait(lambda: not d.server.clients, what="both connections to go")
 
 
 def test_a_client_that_never_reads_its_replies_is_dropped(
-    start_daemon: Callable[..., tuple[Daemon, Path]],
+    start_daemon: Callable[..., tuple[Daemon, Path]], daemon_kit: SimpleNamespace
 ) -> None:
     """20 000 status requests without reading: about 7 MB of replies. The daemon keeps at most
     client_buffer_bytes of them (plus what the kernel's socket buffers hold) and drops the
@@ -158,7 +134,7 @@ def test_a_client_that_never_reads_its_replies_is_dropped(
                 time.sleep(0.01)
             except (BrokenPipeError, ConnectionResetError):
                 break
-        _wait(lambda: d.server.dropped == 1, what="the reader to be dropped")
+        daemon_kit.wait(lambda: d.server.dropped == 1, what="the reader to be dropped")
         flood.setblocking(True)
         flood.settimeout(10)
         received = _read_to_end(flood)
@@ -234,7 +210,7 @@ def _open_many(sock: Path, n: int) -> list[socket.socket]:
 
 @pytest.mark.parametrize("how", ["limit at start", "limit lowered while idle"])
 def test_out_of_file_descriptors_does_not_kill_the_daemon(
-    make_config: Callable[..., Path], how: str
+    make_config: Callable[..., Path], daemon_kit: SimpleNamespace, how: str
 ) -> None:
     """The measured case: ``prlimit --nofile=40`` and 35 idle connections killed the daemon
     (``OSError: [Errno 24]``). At start the daemon fits its connection limit under the
@@ -253,8 +229,10 @@ def test_out_of_file_descriptors_does_not_kill_the_daemon(
     proc = _daemon_process(cfg, log, preexec_fn=limit_40 if how == "limit at start" else None)
     conns: list[socket.socket] = []
     try:
-        _wait(lambda: sock.exists() or proc.poll() is not None, what="the socket")
-        _wait(lambda: _try_status(sock) or proc.poll() is not None, what="the first status")
+        daemon_kit.wait(lambda: sock.exists() or proc.poll() is not None, what="the socket")
+        daemon_kit.wait(
+            lambda: _try_status(sock) or proc.poll() is not None, what="the first status"
+        )
         assert proc.poll() is None, log.read_text()
         if how != "limit at start":
             in_use = len(os.listdir(f"/proc/{proc.pid}/fd"))
@@ -265,7 +243,7 @@ def test_out_of_file_descriptors_does_not_kill_the_daemon(
         for s in conns:
             s.close()
         conns = []
-        status = _wait(lambda: _try_status(sock), what="status after the flood")
+        status = daemon_kit.wait(lambda: _try_status(sock), what="status after the flood")
         assert status["state"] in ("idle", "fault")  # a boot under load may fail
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(30) == 0, log.read_text()
@@ -312,7 +290,7 @@ def test_a_run_of_a_billion_periods_is_refused_at_once(
 
 def test_long_checks_keep_the_daemon_answering_and_a_shutdown_abandons_them(
     tmp_path: Path,
-    make_config: Callable[..., Path],
+    daemon_kit: SimpleNamespace,
     short_trajectory: Path,
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
@@ -328,50 +306,40 @@ def test_long_checks_keep_the_daemon_answering_and_a_shutdown_abandons_them(
         original(*args, **kw)
 
     monkeypatch.setattr(request_module, "check_excitation", slow_check)
-    sock = tmp_path / "ctl.sock"
-    cfg = load_acquisition_config(
-        make_config(daemon=f'socket = "{sock}"\noutput_dir = "{tmp_path / "runs"}"')
-    )
-    d = Daemon(cfg, notifier=Notes())
-    th = threading.Thread(target=d.serve, name="test-daemon")
-    th.start()
-    try:
-        _wait(lambda: "READY=1" in d.notifier.messages, what="READY=1")
-        runner = _connect(sock, timeout=30)
-        runner.sendall(json.dumps({"cmd": "run", "trajectory": str(short_trajectory)}).encode())
-        runner.sendall(b"\n")
-        assert entered.wait(30)
-        status = request(sock, {"cmd": "status"}, timeout=5)
-        assert status["state"] == "preparing"
-        busy = request(sock, {"cmd": "run", "trajectory": str(short_trajectory)}, timeout=5)
-        assert busy["ok"] is False and "being prepared" in busy["error"]
-        t0 = time.monotonic()
-        d.shutdown.request("SIGTERM")
-        th.join(10)
-        assert not th.is_alive() and time.monotonic() - t0 < 5.0
-        reply = read_reply(runner)
-        assert reply == {"ok": False, "error": "the daemon is shutting down"}
-        runner.close()
-    finally:
-        release.set()  # the abandoned worker finishes its (now pointless) checks
-        d.shutdown.request("test")
-        th.join(30)
+    cfg, sock = daemon_kit.config()
+    d = Daemon(cfg, notifier=daemon_kit.Notes())
+    with daemon_kit.serve(d, join_s=30) as th:
+        try:
+            daemon_kit.wait(lambda: "READY=1" in d.notifier.messages, what="READY=1")
+            runner = _connect(sock, timeout=30)
+            runner.sendall(json.dumps({"cmd": "run", "trajectory": str(short_trajectory)}).encode())
+            runner.sendall(b"\n")
+            assert entered.wait(30)
+            status = request(sock, {"cmd": "status"}, timeout=5)
+            assert status["state"] == "preparing"
+            busy = request(sock, {"cmd": "run", "trajectory": str(short_trajectory)}, timeout=5)
+            assert busy["ok"] is False and "being prepared" in busy["error"]
+            t0 = time.monotonic()
+            d.shutdown.request("SIGTERM")
+            th.join(10)
+            assert not th.is_alive() and time.monotonic() - t0 < 5.0
+            reply = read_reply(runner)
+            assert reply == {"ok": False, "error": "the daemon is shutting down"}
+            runner.close()
+        finally:
+            release.set()  # the abandoned worker finishes its (now pointless) checks
     assert d.runs == 0 and not list((tmp_path / "runs").glob("*"))
 
 
 def test_the_teardown_brings_a_run_to_rest_before_closing_the_bus(
-    tmp_path: Path,
-    make_config: Callable[..., Path],
+    daemon_kit: SimpleNamespace,
     long_trajectory: Path,
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     """Whatever ends the loop (here an unexpected error in it, as EMFILE once was), the run is
     stopped and its session ends before the rig (CAN network) is closed."""
-    sock = tmp_path / "ctl.sock"
-    cfg = load_acquisition_config(
-        make_config(daemon=f'socket = "{sock}"\noutput_dir = "{tmp_path / "runs"}"')
-    )
-    d = Daemon(cfg, notifier=Notes())
+    cfg, sock = daemon_kit.config()
+    d = Daemon(cfg, notifier=daemon_kit.Notes())
     errors: list[BaseException] = []
 
     def serve() -> None:
@@ -380,13 +348,13 @@ def test_the_teardown_brings_a_run_to_rest_before_closing_the_bus(
         except BaseException as exc:
             errors.append(exc)
 
-    th = threading.Thread(target=serve, name="test-daemon")
-    th.start()
-    try:
-        _wait(lambda: "READY=1" in d.notifier.messages, what="READY=1")
+    with daemon_kit.serve(d, target=serve) as th:
+        daemon_kit.wait(lambda: "READY=1" in d.notifier.messages, what="READY=1")
         reply = request(sock, {"cmd": "run", "trajectory": str(long_trajectory)})
         assert reply["ok"], reply
-        _wait(lambda: d.active is not None and d.active.session.cycle > 200, what="motion")
+        daemon_kit.wait(
+            lambda: d.active is not None and d.active.session.cycle > 200, what="motion"
+        )
         run = d.active
         assert run is not None and d.rig is not None
         closed_while_running: list[bool] = []
@@ -402,9 +370,6 @@ def test_the_teardown_brings_a_run_to_rest_before_closing_the_bus(
             raise RuntimeError("a bug in the loop")
 
         monkeypatch.setattr(d.server, "poll", broken_poll)
-        th.join(60)
-    finally:
-        d.shutdown.request("test")
         th.join(60)
     assert not th.is_alive()
     assert len(errors) == 1 and "a bug in the loop" in str(errors[0])

@@ -1,9 +1,12 @@
-"""Fixtures of the identify tests: the TX-40, its simulation truth, payloads, excitations."""
+"""Fixtures of the identify tests: the TX-40, its simulation truth, payloads, excitations,
+simulated runs and the MCAP logs made of them."""
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+import json
+from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +19,8 @@ from drivegain.config.truth import Truth
 from drivegain.dynamics.base import BaseParameters
 from drivegain.dynamics.model import RobotModel, build_model
 from drivegain.formats.fourier import FourierTrajectory
-from drivegain.identify.blas import limited_blas_threads
+from drivegain.formats.log import RunMetadata
+from drivegain.formats.logwriter import write_run
 from drivegain.identify.convert import convert_csv
 from drivegain.identify.prepare import (
     PreparedRun,
@@ -26,7 +30,7 @@ from drivegain.identify.prepare import (
     stored_columns,
 )
 from drivegain.identify.signal import default_filter
-from drivegain.identify.synth import exciting_sum_of_sines, simulate_run
+from drivegain.identify.synth import SyntheticRun, exciting_sum_of_sines, simulate_run
 
 #: Excitation used by the simulated runs: base frequency and harmonics (bandwidth 1 Hz).
 BASE_HZ = 0.2
@@ -34,6 +38,10 @@ HARMONICS = 5
 #: Noise of model.md: torque noise, N·m, and the encoder quantum at the joint, rad.
 TORQUE_NOISE = 0.05
 QUANTUM = float(np.deg2rad(1e-3))
+#: Sample rate of the simulated MCAP logs, Hz, and the TRAJ.json attached to them (the
+#: excitation's base frequency; its coefficients are not read back).
+LOG_RATE = 250.0
+LOG_TRAJECTORY = {"fourier": {"base_frequency_hz": 0.2, "a": [[0.0] * 5] * 6, "b": [[0.0] * 5] * 6}}
 
 
 @dataclass(frozen=True)
@@ -49,10 +57,8 @@ class World:
 
 
 @pytest.fixture(scope="session", autouse=True)
-def _single_blas_thread() -> Iterator[None]:
-    """As the identify command does: OpenBLAS threads thrash on the shared, busy cores."""
-    with limited_blas_threads(1):
-        yield
+def _single_blas_thread(single_blas_thread: None) -> None:
+    """As the identify command does (see the root conftest)."""
 
 
 @pytest.fixture(scope="session")
@@ -86,6 +92,74 @@ def world() -> World:
 
 
 Simulate = Callable[..., PreparedRun]
+
+
+def simulate_noisy(
+    world: World,
+    which: int,
+    payload: Payload | None,
+    t: np.ndarray,
+    rng: np.random.Generator,
+    *,
+    torque_noise: float | np.ndarray = TORQUE_NOISE,
+    current_noise: float | np.ndarray = 0.0,
+    quantum: float = QUANTUM,
+) -> SyntheticRun:
+    """Excitation ``which`` tracked exactly at the times ``t`` (s), with torque noise (N·m),
+    current noise and the encoder quantum (rad) drawn from ``rng``."""
+    q, qd, qdd = world.excitations[which].evaluate(t)[:3]
+    return simulate_run(
+        world.model,
+        world.truth,
+        q,
+        qd,
+        qdd,
+        payload=payload,
+        torque_noise=torque_noise,
+        current_noise=current_noise,
+        quantum=quantum,
+        rng=rng,
+    )
+
+
+def write_sim_log(
+    world: World,
+    path: Path,
+    which: int,
+    payload: Payload | None,
+    seed: int,
+    *,
+    seconds: float,
+    quantum: float = QUANTUM,
+    joints: int | None = None,
+    trajectory: bool = True,
+) -> Path:
+    """A simulated run (:func:`simulate_noisy`, seeded with ``seed``) of ``seconds`` at
+    :data:`LOG_RATE` written as a drivegain MCAP log at ``path``.
+
+    ``joints`` keeps the first joints only; ``trajectory`` attaches :data:`LOG_TRAJECTORY` as
+    ``trajectory.json``.
+    """
+    t = np.arange(0.0, seconds, 1.0 / LOG_RATE)
+    sim = simulate_noisy(world, which, payload, t, np.random.default_rng(seed), quantum=quantum)
+    n = world.robot.n if joints is None else joints
+    pos, cur = sim.q[:, :n], sim.current_reference[:, :n]
+    meta = RunMetadata(
+        robot=world.robot.name,
+        run="loaded" if payload is not None else "unloaded",
+        payload=payload.name if payload is not None else "none",
+        joint_names=world.robot.joint_names[:n],
+        sync_period_s=1.0 / LOG_RATE,
+        started_at="2024-01-01T00:00:00.000Z",
+    )
+    att = [("trajectory.json", "application/json", json.dumps(LOG_TRAJECTORY).encode())]
+    return write_run(path, meta, t, pos, cur, attachments=att if trajectory else ())
+
+
+@pytest.fixture(scope="session")
+def sim_log(world: World) -> Callable[..., Path]:
+    """:func:`write_sim_log` of the TX-40 world: ``sim_log(path, which, payload, seed, ...)``."""
+    return partial(write_sim_log, world)
 
 
 @pytest.fixture(scope="session")
@@ -136,18 +210,14 @@ def noisy_run(world: World) -> Simulate:
         label: str = "run",
     ) -> PreparedRun:
         t = np.arange(0.0, duration, 1.0 / rate)
-        q, qd, qdd = world.excitations[which].evaluate(t)[:3]
-        sim = simulate_run(
-            world.model,
-            world.truth,
-            q,
-            qd,
-            qdd,
-            payload=payload,
+        sim = simulate_noisy(
+            world,
+            which,
+            payload,
+            t,
+            rng,
             torque_noise=torque_noise,
             current_noise=current_noise,
-            quantum=QUANTUM,
-            rng=rng,
         )
         settings = default_filter(rate, BASE_HZ * HARMONICS)
         return prepare_recording(

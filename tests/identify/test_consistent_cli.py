@@ -11,50 +11,20 @@ import pytest
 
 from drivegain.cli import main
 from drivegain.config import resource_path
-from drivegain.formats.log import RunMetadata
-from drivegain.formats.logwriter import write_run
 from drivegain.identify.consistent import pseudo_inertia_eigenvalues
 from drivegain.identify.export import exported_torque, load_exported
-from drivegain.identify.synth import simulate_run, true_torque
+from drivegain.identify.synth import true_torque
 
-RATE = 250.0
 ROBOT = resource_path("tx40.toml")
 PAYLOAD = resource_path("payloads/calibrated-4590g.toml")
 
 
-def _write_log(world, path: Path, which: int, payload, seed: int, seconds: float = 20.0) -> Path:
-    t = np.arange(0.0, seconds, 1.0 / RATE)
-    q, qd, qdd = world.excitations[which].evaluate(t)[:3]
-    sim = simulate_run(
-        world.model,
-        world.truth,
-        q,
-        qd,
-        qdd,
-        payload=payload,
-        torque_noise=0.05,
-        quantum=float(np.deg2rad(1e-3)),
-        rng=np.random.default_rng(seed),
-    )
-    trajectory = {"fourier": {"base_frequency_hz": 0.2, "a": [[0.0] * 5] * 6, "b": [[0.0] * 5] * 6}}
-    meta = RunMetadata(
-        robot=world.robot.name,
-        run="loaded" if payload is not None else "unloaded",
-        payload=payload.name if payload is not None else "none",
-        joint_names=world.robot.joint_names,
-        sync_period_s=1.0 / RATE,
-        started_at="2024-01-01T00:00:00.000Z",
-    )
-    att = [("trajectory.json", "application/json", json.dumps(trajectory).encode())]
-    return write_run(path, meta, t, sim.q, sim.current_reference, attachments=att)
-
-
 @pytest.fixture(scope="module")
-def logs(world, tmp_path_factory) -> dict[str, Path]:
+def logs(world, sim_log, tmp_path_factory) -> dict[str, Path]:
     d = tmp_path_factory.mktemp("clogs")
     return {
-        "a": _write_log(world, d / "a.mcap", 0, None, 21),
-        "b": _write_log(world, d / "b.mcap", 1, world.payload, 22),
+        "a": sim_log(d / "a.mcap", 0, None, 21, seconds=20.0),
+        "b": sim_log(d / "b.mcap", 1, world.payload, 22, seconds=20.0),
     }
 
 

@@ -14,49 +14,21 @@ import shutil
 import subprocess
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from drivegain.cli import main
 from drivegain.config import resource_path
-from drivegain.formats.log import RunMetadata
-from drivegain.formats.logwriter import write_run
 from drivegain.identify.html import html_report
-from drivegain.identify.synth import simulate_run
 
-RATE = 250.0
 CHROMIUM = os.environ.get("DRIVEGAIN_CHROMIUM") or shutil.which("chromium") or "/usr/bin/chromium"
 
 
-def _log(world, path: Path, which: int, payload, seed: int) -> Path:
-    t = np.arange(0.0, 12.0, 1.0 / RATE)
-    q, qd, qdd = world.excitations[which].evaluate(t)[:3]
-    sim = simulate_run(
-        world.model,
-        world.truth,
-        q,
-        qd,
-        qdd,
-        payload=payload,
-        torque_noise=0.05,
-        rng=np.random.default_rng(seed),
-    )
-    meta = RunMetadata(
-        robot=world.robot.name,
-        run="loaded" if payload is not None else "unloaded",
-        payload=payload.name if payload is not None else "none",
-        joint_names=world.robot.joint_names,
-        sync_period_s=1.0 / RATE,
-        started_at="2024-01-01T00:00:00.000Z",
-    )
-    return write_run(path, meta, t, sim.q, sim.current_reference)
-
-
 @pytest.fixture(scope="module")
-def report(world, tmp_path_factory: pytest.TempPathFactory) -> Path:
+def report(world, sim_log, tmp_path_factory: pytest.TempPathFactory) -> Path:
     d = tmp_path_factory.mktemp("html")
-    a = _log(world, d / "a.mcap", 0, None, 1)
-    b = _log(world, d / "b.mcap", 1, world.payload, 2)
+    # no encoder quantum, no trajectory attached
+    a = sim_log(d / "a.mcap", 0, None, 1, seconds=12.0, quantum=0.0, trajectory=False)
+    b = sim_log(d / "b.mcap", 1, world.payload, 2, seconds=12.0, quantum=0.0, trajectory=False)
     out = d / "report"
     argv = ["identify", "--robot", str(resource_path("tx40.toml")), "--unloaded", str(a)]
     argv += ["--loaded", str(b), "--payload", str(resource_path("payloads/calibrated-4590g.toml"))]

@@ -11,89 +11,33 @@ import pytest
 
 from drivegain.cli import main
 from drivegain.config import resource_path
-from drivegain.formats.log import RunMetadata
-from drivegain.formats.logwriter import write_run
-from drivegain.identify.synth import simulate_run
 
-RATE = 250.0
 ROBOT = resource_path("tx40.toml")
 PAYLOAD = resource_path("payloads/calibrated-4590g.toml")
 VALIDATION = resource_path("payloads/validation-1686g.toml")
 
 
-def _write_log(
-    world,
-    path: Path,
-    which: int,
-    payload,
-    seed: int,
-    *,
-    seconds: float = 30.0,
-    joints: int = 6,
-    nan_at: int | None = None,
-) -> Path:
-    t = np.arange(0.0, seconds, 1.0 / RATE)
-    q, qd, qdd = world.excitations[which].evaluate(t)[:3]
-    sim = simulate_run(
-        world.model,
-        world.truth,
-        q,
-        qd,
-        qdd,
-        payload=payload,
-        torque_noise=0.05,
-        quantum=float(np.deg2rad(1e-3)),
-        rng=np.random.default_rng(seed),
-    )
-    pos, cur = sim.q[:, :joints], sim.current_reference[:, :joints]
-    if nan_at is not None:
-        pos = pos.copy()
-        pos[nan_at, 0] = np.nan
-    trajectory = {"fourier": {"base_frequency_hz": 0.2, "a": [[0.0] * 5] * 6, "b": [[0.0] * 5] * 6}}
-    meta = RunMetadata(
-        robot=world.robot.name,
-        run="loaded" if payload is not None else "unloaded",
-        payload=payload.name if payload is not None else "none",
-        joint_names=world.robot.joint_names[:joints],
-        sync_period_s=1.0 / RATE,
-        started_at="2024-01-01T00:00:00.000Z",
-    )
-    att = [("trajectory.json", "application/json", json.dumps(trajectory).encode())]
-    return write_run(path, meta, t, pos, cur, attachments=att)
-
-
 @pytest.fixture(scope="module")
-def logs(world, tmp_path_factory) -> dict[str, Path]:
+def logs(world, sim_log, tmp_path_factory) -> dict[str, Path]:
     d = tmp_path_factory.mktemp("logs")
     return {
-        "a": _write_log(world, d / "a.mcap", 0, None, 1),
-        "b": _write_log(world, d / "b.mcap", 1, world.payload, 2),
-        "c": _write_log(world, d / "c.mcap", 2, world.validation, 3),
+        "a": sim_log(d / "a.mcap", 0, None, 1, seconds=30.0),
+        "b": sim_log(d / "b.mcap", 1, world.payload, 2, seconds=30.0),
+        "c": sim_log(d / "c.mcap", 2, world.validation, 3, seconds=30.0),
     }
+
+
+def _identify_both(logs: dict[str, Path], *args: str | Path) -> int:
+    """``drivegain identify`` of the unloaded run a and the loaded run b, then ``args``."""
+    argv = ["--unloaded", logs["a"], "--loaded", logs["b"], "--payload", PAYLOAD, *args]
+    return main(["identify", "--robot", str(ROBOT), *[str(a) for a in argv]])
 
 
 @pytest.fixture(scope="module")
 def full_report(logs, tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("runs") / "report"
-    code = main(
-        [
-            "identify",
-            "--robot",
-            str(ROBOT),
-            "--unloaded",
-            str(logs["a"]),
-            "--loaded",
-            str(logs["b"]),
-            "--payload",
-            str(PAYLOAD),
-            "--validate",
-            str(logs["c"]),
-            "--validate-payload",
-            str(VALIDATION),
-            "--out",
-            str(out),
-        ]
-    )
+    validate = ("--validate", logs["c"], "--validate-payload", VALIDATION)
+    code = _identify_both(logs, *validate, "--out", out)
     assert code == 0
     return out
 
@@ -150,26 +94,7 @@ def test_markdown_and_plots(full_report: Path) -> None:
 
 def test_gains_from_a_report_or_a_toml_skip_wtls(full_report, logs, tmp_path, capsys) -> None:
     out = tmp_path / "again"
-    assert (
-        main(
-            [
-                "identify",
-                "--robot",
-                str(ROBOT),
-                "--unloaded",
-                str(logs["a"]),
-                "--loaded",
-                str(logs["b"]),
-                "--payload",
-                str(PAYLOAD),
-                "--gains",
-                str(full_report / "report.json"),
-                "--out",
-                str(out),
-            ]
-        )
-        == 0
-    )
+    assert _identify_both(logs, "--gains", full_report / "report.json", "--out", out) == 0
     first = json.loads((full_report / "report.json").read_text())
     doc = json.loads((out / "report.json").read_text())
     assert doc["method"]["estimator"] == "IDIM-WLS"
@@ -215,12 +140,12 @@ def test_existing_out_folder_keeps_other_files(logs, tmp_path) -> None:
     assert json.loads((out / "report.json").read_text())["format_version"] == 1
 
 
-def _bad_inputs(world, logs, tmp: Path) -> dict[str, list[str]]:
+def _bad_inputs(sim_log, logs, tmp: Path) -> dict[str, list[str]]:
     base = ["identify", "--robot", str(ROBOT), "--unloaded", str(logs["a"])]
     text = tmp / "notes.mcap"
     text.write_text("not a log\n")
-    short = _write_log(world, tmp / "short.mcap", 0, None, 5, seconds=0.4)
-    five = _write_log(world, tmp / "five.mcap", 0, None, 6, joints=5)
+    short = sim_log(tmp / "short.mcap", 0, None, 5, seconds=0.4)
+    five = sim_log(tmp / "five.mcap", 0, None, 6, seconds=30.0, joints=5)
     bad_gains = tmp / "gains.toml"
     bad_gains.write_text("values = [1.0, 2.0]\n")
     a_file = tmp / "file"
@@ -248,8 +173,10 @@ def _bad_inputs(world, logs, tmp: Path) -> dict[str, list[str]]:
     }
 
 
-def test_bad_input_exits_2_with_one_line_and_writes_nothing(world, logs, tmp_path, capsys) -> None:
-    cases = _bad_inputs(world, logs, tmp_path)
+def test_bad_input_exits_2_with_one_line_and_writes_nothing(
+    sim_log, logs, tmp_path, capsys
+) -> None:
+    cases = _bad_inputs(sim_log, logs, tmp_path)
     for name, argv in cases.items():
         out = tmp_path / f"out-{name.replace(' ', '-')}"
         if "--out" not in argv:

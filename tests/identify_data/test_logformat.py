@@ -50,6 +50,20 @@ def signals(n: int, seed: int = 0) -> dict[str, np.ndarray]:
     }
 
 
+def write_cycle(w: LogWriter, s: dict[str, np.ndarray], i: int, *, measured: bool = True) -> None:
+    """Cycle ``i`` of the :func:`signals` ``s`` to ``w``, at log time ``i`` · 4 ms; without
+    ``measured``, no current nor set-point (written as null)."""
+    w.write_joint_state(
+        cycle=i,
+        t=s["t"][i],
+        log_time_ns=i * 4_000_000,
+        position=s["position"][i],
+        current_reference=s["current_reference"][i],
+        current=s["current"][i] if measured else None,
+        setpoint=s["setpoint"][i] if measured else None,
+    )
+
+
 def one_line_naming(err: DataError, path: Path) -> str:
     text = str(err)
     assert "\n" not in text
@@ -171,15 +185,7 @@ def test_context_manager_finishes_after_a_fault(tmp_path: Path) -> None:
     with pytest.raises(RuntimeError, match="drive fault"):
         with LogWriter(out, meta()) as w:
             for i in range(50):
-                w.write_joint_state(
-                    cycle=i,
-                    t=s["t"][i],
-                    log_time_ns=i * 4_000_000,
-                    position=s["position"][i],
-                    current_reference=s["current_reference"][i],
-                    current=None,
-                    setpoint=None,
-                )
+                write_cycle(w, s, i, measured=False)
             raise RuntimeError("drive fault")
     with out.open("rb") as fh:  # complete: the library's seeking reader accepts it
         assert sum(1 for _ in make_reader(fh).iter_messages(topics=[JOINT_STATES])) == 50
@@ -220,15 +226,7 @@ def test_close_unfinished_keeps_everything_flushed(tmp_path: Path) -> None:
     s = signals(300)
     w = LogWriter(out, meta(), [("robot.toml", "application/toml", b"abc")])
     for i in range(300):
-        w.write_joint_state(
-            cycle=i,
-            t=s["t"][i],
-            log_time_ns=i * 4_000_000,
-            position=s["position"][i],
-            current_reference=s["current_reference"][i],
-            current=s["current"][i],
-            setpoint=s["setpoint"][i],
-        )
+        write_cycle(w, s, i)
         if i == 199:
             w.flush()
     w.close_unfinished()
@@ -262,15 +260,7 @@ def _chunked_log(path: Path, n: int, chunk_size: int) -> tuple[Path, dict[str, n
     s = signals(n)
     w = LogWriter(path, meta(), chunk_size=chunk_size)
     for i in range(n):
-        w.write_joint_state(
-            cycle=i,
-            t=s["t"][i],
-            log_time_ns=i * 4_000_000,
-            position=s["position"][i],
-            current_reference=s["current_reference"][i],
-            current=s["current"][i],
-            setpoint=s["setpoint"][i],
-        )
+        write_cycle(w, s, i)
     return w.finish(), s
 
 

@@ -2,19 +2,14 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-
 import pytest
 
-from drivegain.identify.blas import limited_blas_threads
 from drivegain.validation.world import World, make_world
 
 
 @pytest.fixture(scope="session", autouse=True)
-def _single_blas_thread() -> Iterator[None]:
-    """As the study does: OpenBLAS threads thrash on the shared, busy cores."""
-    with limited_blas_threads(1):
-        yield
+def _single_blas_thread(single_blas_thread: None) -> None:
+    """As the study does (see the root conftest)."""
 
 
 @pytest.fixture(scope="session")
