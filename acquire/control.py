@@ -120,7 +120,7 @@ class ControlServer:
         path = self.settings.socket
         path.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
         try:
-            listener = bind_private(path, socket.SOCK_STREAM)
+            listener = bind_private(path, socket.SOCK_STREAM, backlog=16)
         except NotASocket:
             raise ConfigError(
                 f"{path} exists and is not a socket", file=self.source, key="daemon.socket"
@@ -129,7 +129,6 @@ class ControlServer:
             raise ConfigError(
                 f"another daemon is listening on {path}", file=self.source, key="daemon.socket"
             ) from None
-        listener.listen(16)
         listener.setblocking(False)
         self._selector.register(listener, selectors.EVENT_READ, None)
         self._listener = listener

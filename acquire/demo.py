@@ -45,6 +45,10 @@ log = logging.getLogger(__name__)
 SIM_CONFIG = "acquire-sim.toml"
 SHIPPED_TRAJECTORY = "tx40-excitation.json"
 PAYLOAD = "payloads/calibrated-4590g.toml"
+#: Age of the simulated drives' current samples (samples): they report the current reference
+#: averaged over the SYNC period that ends at the position sample (``drivegain identify
+#: --current-delay``).
+SIM_CURRENT_DELAY = 0.5
 #: ``--robot``: shipped robot name -> (simulated acquisition TOML, shipped trajectory).
 ROBOTS = {
     "tx40": (SIM_CONFIG, SHIPPED_TRAJECTORY),
@@ -276,6 +280,7 @@ def _identify(
             loaded=b.path,
             payload=payload,
             out=report_dir,
+            current_delay=SIM_CURRENT_DELAY,
             progress=sys.stderr.isatty() if progress is None else progress,
             plots=plots,
         )

@@ -115,6 +115,7 @@ POSITIVE = _number(float, 1e-9, 1e9)
 DECIMATE = _number(int, 1, 10_000)
 BITRATE = _number(int, 10_000, 1_000_000, "bit/s")
 NONNEGATIVE = _number(float, 0.0, 1e9)
+SAMPLE_FRACTION = _number(float, 0.0, 1.0)
 SIGMAS = _number(float, 0.1, 1e6, "σ")
 RETRIES = _number(int, 0, 100)
 
@@ -356,6 +357,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--cutoff", type=POSITIVE, help="low-pass cut-off of positions, Hz")
     p.add_argument("--decimate", type=DECIMATE, help="decimation factor")
+    p.add_argument(
+        "--current-delay",
+        type=SAMPLE_FRACTION,
+        metavar="SAMPLES",
+        help="age of each current sample relative to its position sample (0-1; 0.5 for drives "
+        "that report the current averaged over the period ending at the sample, as the "
+        "simulated drives do)",
+    )
     p.add_argument(
         "--reference",
         type=Path,

@@ -21,8 +21,12 @@ class SocketInUse(FileExistsError):
     """A server is listening on the path."""
 
 
-def bind_private(path: Path, kind: int) -> socket.socket:
-    """A Unix socket of type ``kind`` (``SOCK_STREAM``, ``SOCK_SEQPACKET``) bound at ``path``.
+def bind_private(path: Path, kind: int, backlog: int = 16) -> socket.socket:
+    """A listening Unix socket of type ``kind`` (``SOCK_STREAM``, ``SOCK_SEQPACKET``) at ``path``.
+
+    The socket is bound under a temporary name beside ``path``, set listening, then renamed
+    into place: a client that sees the file can connect at once (a socket bound but not yet
+    listening refuses connections, which a client waiting for the file would take as an error).
 
     Raises
     ------
@@ -48,12 +52,18 @@ def bind_private(path: Path, kind: int) -> socket.socket:
         finally:
             probe.close()
     sock = socket.socket(socket.AF_UNIX, kind)
+    # A short name: the staging path must fit the same 108-byte limit as ``path``.
+    staging = path.with_name(f".{os.getpid():x}")
     old = os.umask(0o177)
     try:
-        sock.bind(str(path))
-        os.chmod(path, 0o600)
+        staging.unlink(missing_ok=True)
+        sock.bind(str(staging))
+        os.chmod(staging, 0o600)
+        sock.listen(backlog)
+        os.replace(staging, path)
     except OSError:
         sock.close()
+        staging.unlink(missing_ok=True)
         raise
     finally:
         os.umask(old)

@@ -128,12 +128,11 @@ class IpcBus(can.BusABC):
     # --- set-up ---------------------------------------------------------------------------------
     def _listen(self) -> socket.socket:
         try:
-            sock = bind_private(self.path, socket.SOCK_SEQPACKET)
+            sock = bind_private(self.path, socket.SOCK_SEQPACKET, backlog=8)
         except (NotASocket, SocketInUse) as exc:
             raise can.CanInitializationError(str(exc)) from None
         except OSError as exc:
             raise can.CanInitializationError(f"cannot listen on {self.path}: {exc}") from None
-        sock.listen(8)
         return sock
 
     def _connect(self, timeout_s: float) -> socket.socket:

@@ -14,7 +14,7 @@ import math
 import os
 import struct
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from enum import IntEnum
 from pathlib import Path
 
@@ -262,3 +262,52 @@ def period_from_interpolation(value: int, index: int) -> float:
 
 def counts_per_radian(counts_per_rev: int) -> float:
     return counts_per_rev / (2.0 * math.pi)
+
+
+# --- PDOs of a simulated drive -----------------------------------------------------------------
+@dataclass(frozen=True)
+class MappedEntry:
+    """One entry of a PDO mapping: the object, its struct format and value range."""
+
+    index: int
+    subindex: int
+    fmt: str
+    lo: int
+    hi: int
+
+    @classmethod
+    def of(cls, index: int, subindex: int, fmt: str) -> MappedEntry:
+        bits = struct.calcsize("<" + fmt) * 8
+        if fmt.islower():
+            return cls(index, subindex, fmt, -(1 << (bits - 1)), (1 << (bits - 1)) - 1)
+        return cls(index, subindex, fmt, 0, (1 << bits) - 1)
+
+    @property
+    def bits(self) -> int:
+        return struct.calcsize("<" + self.fmt) * 8
+
+    def fit(self, value: int) -> int:
+        """``value`` in the range of the mapped type: positions (int32) wrap like an encoder
+        counter, everything else saturates."""
+        if self.lo <= value <= self.hi:
+            return value
+        if self.fmt == "i":
+            return (value - self.lo) % (self.hi - self.lo + 1) + self.lo
+        return max(self.lo, min(self.hi, value))
+
+
+@dataclass
+class ActivePdo:
+    """A PDO in use by a simulated drive: its mapping, packer and SYNC count."""
+
+    number: int  # 1-based
+    cob_id: int
+    trans_type: int
+    entries: tuple[MappedEntry, ...]
+    packer: struct.Struct
+    sync_count: int = 0
+    #: (index, subindex) of every mapped entry, in order.
+    keys: tuple[tuple[int, int], ...] = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.keys = tuple((e.index, e.subindex) for e in self.entries)

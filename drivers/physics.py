@@ -18,7 +18,7 @@ by its brake (its motor coordinate is locked; braking is instantaneous).
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from enum import IntEnum
 from typing import Any
 
@@ -87,7 +87,7 @@ class LoopGains:
     i_max: np.ndarray
 
 
-@dataclass(frozen=True)
+@dataclass(slots=True)  # not frozen: made at every internal step, frozen ones cost more
 class StepOutput:
     """What the drives apply during one internal step and the resulting acceleration.
 
@@ -298,6 +298,9 @@ class RobotPhysics:
         self._i_steps = 0
         self._prev_meas = self._measured()
         self._pending: StepOutput | None = None
+        self._pending_accel = False  # the cached outputs include the acceleration
+        self._nan = np.full(self.n, np.nan)
+        self._nan.flags.writeable = False
         self._pending_loop: tuple[np.ndarray, np.ndarray] = (np.zeros(self.n), self._prev_meas)
         # Motor angles and speeds at the start of the last steps, by step index: what a drive
         # latched at a SYNC that the realtime integrator has already run past (kept only after
@@ -443,12 +446,22 @@ class RobotPhysics:
         self._noise_at = at + 1
         return self._noise_rows[at]
 
-    def evaluate(self) -> StepOutput:
+    def evaluate(self, accel: bool = True) -> StepOutput:
         """Controller outputs and acceleration for the step starting now (cached until the
-        state or a command changes)."""
-        if self._pending is not None:
-            return self._pending
-        n = self.n
+        state or a command changes).
+
+        ``accel=False``: the controller outputs only, ``qdd`` left NaN (no forward dynamics,
+        the costliest part); a later call with ``accel`` completes the cached outputs with the
+        acceleration, the same as if it had been computed at once.
+        """
+        pending = self._pending
+        if pending is not None:
+            if not accel or self._pending_accel:
+                return pending
+            out = replace(pending, qdd=self._accel(pending.tau))
+            self._pending = out
+            self._pending_accel = True
+            return out
         sp, v_ff = self._setpoint_at(self.time_s)
         if self._any_qs:
             sp = np.where(self._qs, self._qs_pos, sp)
@@ -470,10 +483,7 @@ class RobotPhysics:
             i_act = np.where(powered, i_ref + noise, 0.0)
             following_error = np.where(powered, err, 0.0)
         tau = self._kt_t @ (self.kt * i_act)
-        if self._any_powered:
-            qdd = self._forward(tau)
-        else:
-            qdd = np.zeros(n)
+        qdd = self._accel(tau) if accel else self._nan
         out = StepOutput(
             setpoint=sp,
             following_error=following_error,
@@ -483,8 +493,13 @@ class RobotPhysics:
             qdd=qdd,
         )
         self._pending = out
+        self._pending_accel = accel
         self._pending_loop = (ev, meas)
         return out
+
+    def _accel(self, tau: np.ndarray) -> np.ndarray:
+        """Joint accelerations (rad/s²) under the motor torques ``tau`` in the present state."""
+        return self._forward(tau) if self._any_powered else np.zeros(self.n)
 
     def _forward(self, tau: np.ndarray) -> np.ndarray:
         m = self.dyn.mass_matrix(self.q)

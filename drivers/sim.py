@@ -7,8 +7,8 @@ master side is exactly the code that runs on hardware. Time:
 
 - ``lockstep``: every SYNC advances the physics by exactly one period (deterministic, as fast as
   the machine allows); heartbeats, the heartbeat consumers and late TPDOs run on the simulated
-  clock shared with the master (:mod:`.simtime`, on the in-process ``virtual`` bus; drives in a
-  process of their own cannot share it and keep the wall clock);
+  clock shared with the master (:mod:`.simtime`, on the in-process ``virtual`` bus, which then
+  hands frames over in the sender's thread; drives in a process of their own keep the wall clock);
 - ``realtime``: the physics follows the wall clock since :meth:`start` (an integrator thread
   between SYNCs); a SYNC is handled at the instant the bus stamped it with.
 
@@ -407,6 +407,8 @@ class SimulatedCell:
             )
 
     def _end_ramps(self) -> None:
+        if not self.physics.any_quick_stop:  # (every SYNC: nothing to end, most of the time)
+            return
         done = self.physics.quick_stop_done()
         for drive in self.drives.values():
             if done[drive.joint]:
@@ -462,20 +464,15 @@ class SimulatedCell:
         self._publish_samples(i_mean, latched)
         self._send_tpdos(network)
 
-        n = self.robot.n
-        targets = np.zeros(n)
-        mask = np.zeros(n, dtype=bool)
-        for drive in self.drives.values():
-            target = drive.latch()
-            if target is not None:
-                targets[drive.joint] = target / self._cpr[drive.joint]
-                mask[drive.joint] = True
+        latches = [drive.latch() for drive in self.drives.values()]  # joint order
+        mask = np.array([t is not None for t in latches])
+        targets = np.array([t or 0 for t in latches], dtype=float) / self._cpr  # motor rad
         ph.latch_targets(targets, mask, self.period_s)
         self._end_ramps()
         out = ph.evaluate()
-        fe_counts = np.rint(out.following_error * self._cpr).astype(int)
+        fe_counts = np.rint(out.following_error * self._cpr).astype(int).tolist()
         for drive in self.drives.values():
-            drive.check_following_error(int(fe_counts[drive.joint]), sim_t)
+            drive.check_following_error(fe_counts[drive.joint], sim_t)
         out = ph.evaluate()  # again: a fault just raised brakes a motor
         with self._lock:
             self._history.append(
@@ -545,27 +542,27 @@ class SimulatedCell:
         s) rather than the present ones.
         """
         ph = self.physics
-        out = ph.evaluate()
+        # no acceleration: a SYNC latches new targets next, which changes the step's outputs
+        out = ph.evaluate(accel=False)
         if i_mean is None:
             i_mean = out.current_reference
         xm, xmd = ph.motor_state_at(ph.time_s if at is None else at)
-        counts = np.rint(xm * self._cpr).astype(np.int64)
-        vel = np.rint(xmd * self._cpr).astype(np.int64)
-        demand = np.rint(out.setpoint * self._cpr).astype(np.int64)
-        fe = np.rint(out.following_error * self._cpr).astype(np.int64)
+        rated_a = np.array([d.rated_ma for d in self.drives.values()]) / 1000.0  # joint order
+        # counts, and per mille of the rated current; rounded half to even (as round()), ints
+        cpr = self._cpr
+        rows = [xm * cpr, xmd * cpr, out.setpoint * cpr, out.following_error * cpr]
+        rows += [i_mean / rated_a * 1000.0, out.current / rated_a * 1000.0]
+        counts, vel, demand, fe, torque_demand, current = np.rint(rows).astype(np.int64).tolist()
         for drive in self.drives.values():
             j = drive.joint
-            rated_a = drive.rated_ma / 1000.0
-            torque_demand = round(i_mean[j] / rated_a * 1000.0)
-            current = round(out.current[j] / rated_a * 1000.0)
             drive.sample = {
-                ob.POSITION_ACTUAL: int(counts[j]),
-                ob.VELOCITY_ACTUAL: int(vel[j]),
-                ob.POSITION_DEMAND: int(demand[j]),
-                ob.FOLLOWING_ERROR_ACTUAL: int(fe[j]),
-                ob.TORQUE_DEMAND: torque_demand,
-                ob.CURRENT_ACTUAL: current,
-                ob.TORQUE_ACTUAL: current,
+                ob.POSITION_ACTUAL: counts[j],
+                ob.VELOCITY_ACTUAL: vel[j],
+                ob.POSITION_DEMAND: demand[j],
+                ob.FOLLOWING_ERROR_ACTUAL: fe[j],
+                ob.TORQUE_DEMAND: torque_demand[j],
+                ob.CURRENT_ACTUAL: current[j],
+                ob.TORQUE_ACTUAL: current[j],
             }
 
     # --- faults -----------------------------------------------------------------------------------

@@ -8,14 +8,14 @@ TPDOs sent on SYNC (before the RPDO data is applied), the CiA 402 state machine 
 controlword, fault and EMCY production. Physics and time live in :mod:`drivegain.drivers.sim`,
 which calls :meth:`begin_sync`, :meth:`tpdo_frames` and :meth:`latch` at each SYNC.
 
-Every bus callback runs in the simulated bus's notifier thread and is wrapped by the cell's guard
-(a failing callback would silently skip the other callbacks of the same CAN id).
+Every bus callback runs in the simulated bus's notifier thread (in lockstep on the virtual bus: in
+the sender's thread, :mod:`.simtime`) and is wrapped by the cell's guard (a failing
+callback would silently skip the other callbacks of the same CAN id).
 """
 
 from __future__ import annotations
 
 import struct
-from dataclasses import dataclass, field
 from enum import IntEnum
 from typing import TYPE_CHECKING, Any
 
@@ -57,50 +57,6 @@ class NmtState(IntEnum):
     STOPPED = 0x04
     OPERATIONAL = 0x05
     PRE_OPERATIONAL = 0x7F
-
-
-@dataclass(frozen=True)
-class _Mapped:
-    index: int
-    subindex: int
-    fmt: str
-    lo: int
-    hi: int
-
-    @classmethod
-    def of(cls, index: int, subindex: int, fmt: str) -> _Mapped:
-        bits = struct.calcsize("<" + fmt) * 8
-        if fmt.islower():
-            return cls(index, subindex, fmt, -(1 << (bits - 1)), (1 << (bits - 1)) - 1)
-        return cls(index, subindex, fmt, 0, (1 << bits) - 1)
-
-    @property
-    def bits(self) -> int:
-        return struct.calcsize("<" + self.fmt) * 8
-
-    def fit(self, value: int) -> int:
-        """``value`` in the range of the mapped type: positions (int32) wrap like an encoder
-        counter, everything else saturates."""
-        if self.lo <= value <= self.hi:
-            return value
-        if self.fmt == "i":
-            return (value - self.lo) % (self.hi - self.lo + 1) + self.lo
-        return max(self.lo, min(self.hi, value))
-
-
-@dataclass
-class _ActivePdo:
-    number: int  # 1-based
-    cob_id: int
-    trans_type: int
-    entries: tuple[_Mapped, ...]
-    packer: struct.Struct
-    sync_count: int = 0
-    #: (index, subindex) of every mapped entry, in order.
-    keys: tuple[tuple[int, int], ...] = field(init=False)
-
-    def __post_init__(self) -> None:
-        self.keys = tuple((e.index, e.subindex) for e in self.entries)
 
 
 class DriveNode(canopen.LocalNode):
@@ -172,8 +128,8 @@ class SimDrive:
         self.mode = 0
         self.sync_echo = 0
         self.sample: dict[int, int] = {}
-        self.rpdos: list[_ActivePdo] = []
-        self.tpdos: list[_ActivePdo] = []
+        self.rpdos: list[ob.ActivePdo] = []
+        self.tpdos: list[ob.ActivePdo] = []
         self._pdo_dirty = True
         self._subscribed: list[int] = []
         self._rpdo_pending: dict[tuple[int, int], int] = {}
@@ -186,6 +142,8 @@ class SimDrive:
         self.heartbeat_period_s = 0.0
         self.heartbeat_generation = 0
         self._fe_since: float | None = None  # following error beyond the window since (s)
+        # stored_int: (index, subindex) -> (the stored bytes decoded, their value)
+        self._decoded: dict[tuple[int, int], tuple[bytes, int]] = {}
         self.consumer = HeartbeatConsumer(self, cell.clock)
         self._ramp_reaction = False  # the fault reaction ramps the motor to rest
         self._apply_commissioning()
@@ -201,9 +159,24 @@ class SimDrive:
         """Value of an object as stored (or its EDS default)."""
         return self._var(index, subindex).decode_raw(self.node.get_data(index, subindex))
 
+    def stored_int(self, index: int, subindex: int = 0) -> int:
+        """``int(stored(index, subindex))`` of an object the drive does not compute (see
+        :meth:`_live`), decoded once per value stored: read at every SYNC."""
+        raw = self.node.data_store.get(index, {}).get(subindex)
+        key = (index, subindex)
+        hit = self._decoded.get(key)
+        if raw is not None and hit is not None and hit[0] is raw:
+            return hit[1]
+        value = int(self.stored(index, subindex))
+        if raw is not None:  # (an EDS default is decoded each time: no value to compare)
+            self._decoded[key] = (raw, value)
+        return value
+
     def _store(self, index: int, subindex: int, value: int) -> None:
-        data = self._var(index, subindex).encode_raw(value)
-        self.node.data_store.setdefault(index, {})[subindex] = bytes(data)
+        raw = bytes(self._var(index, subindex).encode_raw(value))
+        self.node.data_store.setdefault(index, {})[subindex] = raw
+        if type(value) is int:  # what decoding ``raw`` gives: an integer decodes to itself
+            self._decoded[(index, subindex)] = (raw, value)
 
     def _apply_commissioning(self) -> None:
         for (index, subindex), value in self.commissioning.items():
@@ -281,7 +254,7 @@ class SimDrive:
             raise SdoAbortedError(ABORT_VALUE_RANGE)
         self._pdo_dirty = True
 
-    def _mapped(self, value: int) -> _Mapped:
+    def _mapped(self, value: int) -> ob.MappedEntry:
         index, subindex, bits = value >> 16, (value >> 8) & 0xFF, value & 0xFF
         try:
             var = self._var(index, subindex)
@@ -295,7 +268,7 @@ class SimDrive:
             raise SdoAbortedError(ABORT_NOT_MAPPABLE)
         if struct.calcsize("<" + fmt) * 8 != bits:
             raise SdoAbortedError(ABORT_INCOMPATIBLE)
-        return _Mapped.of(index, subindex, fmt)
+        return ob.MappedEntry.of(index, subindex, fmt)
 
     def _check_map_write(self, index: int, subindex: int, value: int) -> None:
         cob = int(self.stored(self._comm_of(index), 1))
@@ -313,7 +286,7 @@ class SimDrive:
             self._mapped(value)
         self._pdo_dirty = True
 
-    def _read_pdos(self, comm_base: int, map_base: int) -> list[_ActivePdo]:
+    def _read_pdos(self, comm_base: int, map_base: int) -> list[ob.ActivePdo]:
         active = []
         for k in range(4):
             if comm_base + k not in self.od:
@@ -327,7 +300,7 @@ class SimDrive:
             )
             packer = struct.Struct("<" + "".join(e.fmt for e in entries))
             trans = int(self.stored(comm_base + k, 2))
-            active.append(_ActivePdo(k + 1, cob & 0x7FF, trans, entries, packer))
+            active.append(ob.ActivePdo(k + 1, cob & 0x7FF, trans, entries, packer))
         return active
 
     def _activate_pdos(self) -> None:
@@ -529,13 +502,13 @@ class SimDrive:
 
     def check_following_error(self, error_counts: int, now_s: float) -> None:
         """Monitor 0x6065 / 0x6066: fault 0x8611 when the error stays beyond the window."""
-        window = int(self.stored(ob.FOLLOWING_ERROR_WINDOW))
+        window = self.stored_int(ob.FOLLOWING_ERROR_WINDOW)
         if window == 0xFFFFFFFF or not self.tracking or abs(error_counts) <= window:
             self._fe_since = None
             return
         if self._fe_since is None:
             self._fe_since = now_s
-        timeout = int(self.stored(ob.FOLLOWING_ERROR_TIMEOUT)) / 1000.0
+        timeout = self.stored_int(ob.FOLLOWING_ERROR_TIMEOUT) / 1000.0
         if now_s - self._fe_since >= timeout:
             self.inject_fault(int(ob.EmcyCode.FOLLOWING_ERROR), emcy=True)
 
@@ -562,7 +535,7 @@ class SimDrive:
             self._apply_rpdo(pending)
         if not self.tracking:
             return None
-        return int(self.stored(ob.TARGET_POSITION))
+        return self.stored_int(ob.TARGET_POSITION)
 
     def tpdo_frames(self) -> list[tuple[int, int, bytes]]:
         """(TPDO number, COB-ID, data) of the TPDOs due at this SYNC."""

@@ -20,16 +20,25 @@ for it: the clock then follows the wall clock from where it stood (:meth:`Lockst
 so the remaining side's consumer still fires, and its scheduled actions run from a thread of the
 clock. Frames carry the simulated time they were sent at (``msg.timestamp``), so a heartbeat is
 stamped with its simulated instant whatever the receiving thread's delay.
+
+On python-can's ``virtual`` bus a frame between the two sides skips the bus's queue and reader
+thread: the sender's thread hands it to the receiver's listeners as soon as it lets go of its
+network's send lock, in the order frames were sent, the receiver's own answers included. A SYNC
+cycle (RPDOs, SYNC, the drives' SYNC handling and physics, the TPDOs back to the master) then
+runs in the master's thread with no thread hand-off, the same steps the reader threads took. Any
+other bus on the channel (a CAN trace) gets every frame through its queue as before.
 """
 
 from __future__ import annotations
 
 import heapq
 import itertools
+import logging
 import math
 import queue
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from typing import Any, Protocol
 
@@ -37,6 +46,8 @@ import can
 from can.interfaces.virtual import VirtualBus
 
 from drivegain.errors import DriveError
+
+logger = logging.getLogger(__name__)
 
 #: Wall-clock seconds a lockstep wait may see no progress at all before it is called a hang.
 HANG_S = 30.0
@@ -116,13 +127,53 @@ class _Never:
 
 class _Party:
     """One side of the bus (the master's network or the simulated drives'): frames it sent and
-    frames it has finished handling."""
+    frames it has finished handling; on the in-process virtual bus, its receive queue and the
+    listeners a frame delivered directly goes to."""
 
-    def __init__(self, name: str):
+    def __init__(self, name: str, inbox: Any = None, notifier: Any = None):
         self.name = name
         self.sent = 0
         self.handled = 0
-        self.thread: int | None = None  # its bus reader thread
+        self.inbox = inbox  # the virtual bus's receive queue (None: another bus)
+        self.notifier = notifier
+
+    def receive(self, msg: can.Message) -> None:
+        """Hand ``msg`` to this side's listeners, as its bus reader thread would."""
+        for listener in list(self.notifier.listeners):
+            try:
+                listener(msg)
+            except Exception:  # as the reader thread would, go on with the next frames
+                logger.exception("lockstep bus: a listener of %s failed", self.name)
+
+
+class _PostingLock:
+    """A network's send lock whose release delivers the frames sent meanwhile (lockstep on the
+    virtual bus: :meth:`LockstepClock._deliver`).
+
+    Delivery waits for the release because a receiver may send in turn on the same network (a
+    SYNC handled by the drives advances the clock, which may fire the master's heartbeat):
+    canopen's send lock is not re-entrant.
+    """
+
+    def __init__(self, clock: LockstepClock):
+        self._lock = threading.Lock()
+        self._clock = clock
+
+    def acquire(self, blocking: bool = True, timeout: float = -1) -> bool:
+        return self._lock.acquire(blocking, timeout)
+
+    def release(self) -> None:
+        self._lock.release()
+        self._clock._deliver()
+
+    def locked(self) -> bool:
+        return self._lock.locked()
+
+    def __enter__(self) -> bool:
+        return self._lock.acquire()
+
+    def __exit__(self, *exc: object) -> None:
+        self.release()
 
 
 class _Counter(can.Listener):
@@ -134,17 +185,19 @@ class _Counter(can.Listener):
         self.party = party
 
     def on_message_received(self, msg: can.Message) -> None:
-        with self.clock._lock:
+        with self.clock._lock:  # (nobody waits for a count: a wait polls, see LockstepClock.wait)
             self.party.handled += 1
-            self.party.thread = threading.get_ident()
-            self.clock._changed.notify_all()
 
     def stop(self) -> None:
         """Nothing to release."""
 
 
-def _virtual_send(bus: Any) -> Callable[[can.Message, float | None], None] | None:
-    """What python-can's virtual bus does to send a frame, copying it by its constructor.
+def _virtual_send(
+    bus: Any, post: Callable[[Any, can.Message], bool]
+) -> Callable[[can.Message, float | None], None] | None:
+    """What python-can's virtual bus does to send a frame, copying it by its constructor; a frame
+    for a receive queue that ``post`` takes (a party of the lockstep clock: delivered directly,
+    see :meth:`LockstepClock._post`) skips the queue and the copy.
 
     ``VirtualBus.send`` copies each frame with ``copy.deepcopy``, the costliest step of a frame on
     the in-process bus (more than the rest of sending it together). The copy here has the same
@@ -156,6 +209,7 @@ def _virtual_send(bus: Any) -> Callable[[can.Message, float | None], None] | Non
     ):
         return None
     message = can.Message
+    channel_id = bus.channel_id
 
     def send(msg: can.Message, timeout: float | None = None) -> None:
         bus._check_if_open()
@@ -164,13 +218,19 @@ def _virtual_send(bus: Any) -> Callable[[can.Message, float | None], None] | Non
         for bus_queue in bus.channel:
             if bus_queue is own and not bus.receive_own_messages:
                 continue
+            # a party's listeners get the sent frame itself, marked received as a copy would
+            # be: every sender here makes a new frame per send (canopen's send_message, the
+            # simulated cell) and never changes it after (copies below set those two fields)
+            if bus_queue is not own and post(bus_queue, msg):
+                msg.channel, msg.is_rx = channel_id, True
+                continue
             copy = message(
                 timestamp=msg.timestamp,
                 arbitration_id=msg.arbitration_id,
                 is_extended_id=msg.is_extended_id,
                 is_remote_frame=msg.is_remote_frame,
                 is_error_frame=msg.is_error_frame,
-                channel=bus.channel_id,
+                channel=channel_id,
                 dlc=msg.dlc,
                 data=bytearray(msg.data),
                 is_fd=msg.is_fd,
@@ -213,6 +273,12 @@ class LockstepClock:
         self._free_since: float | None = None  # wall time the clock started following the wall
         self._free_thread: threading.Thread | None = None
         self._closed = False
+        # Direct delivery on the virtual bus: frames for a party, in the order they were sent,
+        # and the thread handing them to their receivers now (one at a time, as a reader would).
+        self._mail: deque[tuple[_Party, can.Message]] = deque()
+        self._mail_lock = threading.Lock()
+        self._courier: int | None = None
+        self._inboxes: dict[int, _Party] = {}  # id(receive queue) -> attached party
 
     # --- time ------------------------------------------------------------------------------
     def now(self) -> float:
@@ -272,14 +338,18 @@ class LockstepClock:
         and stamp the frames it sends with simulated time. Call it once the network's own
         listeners are in place: the counter must be its notifier's last listener."""
         bus, notifier = network.bus, network.notifier
-        party = _Party(name)
-        send, shutdown = _virtual_send(bus) or bus.send, bus.shutdown
+        virtual = _virtual_send(bus, self._post)
+        party = _Party(name, bus.queue if virtual else None, notifier)
+        send, shutdown = virtual or bus.send, bus.shutdown
         # the virtual bus overwrites a frame's time stamp unless told to keep it
         bus.preserve_timestamps = True
+        if virtual is not None:
+            # frames are delivered when the sender lets go of its network's send lock
+            network.send_lock = _PostingLock(self)
 
         def counted_send(msg: can.Message, timeout: float | None = None) -> None:
             with self._lock:
-                msg.timestamp = self.now()
+                msg.timestamp = self._now if self._free_since is None else self.now()
                 party.sent += 1
             send(msg, timeout)
 
@@ -292,6 +362,9 @@ class LockstepClock:
         notifier.add_listener(_Counter(self, party))
         with self._lock:
             self._parties.append(party)
+            if party.inbox is not None:
+                with self._mail_lock:
+                    self._inboxes[id(party.inbox)] = party
             if len(self._parties) == 2:
                 self._met = True
                 for p in self._parties:  # frames sent before both listened reached nobody
@@ -302,6 +375,8 @@ class LockstepClock:
         consumer must still see it go), and its own actions run from the clock's thread."""
         with self._lock:
             self._parties = [p for p in self._parties if p.name != name]
+            with self._mail_lock:  # its bus reader thread gets what is sent to it from now on
+                self._inboxes = {k: p for k, p in self._inboxes.items() if p.name != name}
             if not self._met or self._free_since is not None:
                 return
             self._free_since = time.monotonic()
@@ -335,6 +410,44 @@ class LockstepClock:
                     return
             self.advance_to(self.now())
 
+    # --- direct delivery (virtual bus) -------------------------------------------------------
+    def _post(self, inbox: Any, msg: can.Message) -> bool:
+        """Queue ``msg`` for the party whose receive queue is ``inbox``; False if no party of
+        this clock reads it (the frame then takes the queue, to that bus's reader thread)."""
+        with self._mail_lock:
+            party = self._inboxes.get(id(inbox))
+            if party is None:
+                return False
+            self._mail.append((party, msg))
+            return True
+
+    def _deliver(self) -> None:
+        """Hand the queued frames to their receivers' listeners in this thread, in the order they
+        were sent, including those the receivers send meanwhile; does nothing if another thread
+        (or this one, further up its stack) is delivering: that one takes the new frames too.
+
+        In lockstep a frame's effect then needs no thread hand-off (bus reader threads woken,
+        the interpreter lock passed back and forth): a SYNC cycle runs in the sender's thread.
+        What happens is what the reader threads did, in the same order per receiver; the time
+        stamps are simulated time, so the outcome does not depend on which thread delivers.
+        """
+        with self._mail_lock:
+            if self._courier is not None or not self._mail:
+                return
+            self._courier = threading.get_ident()
+        try:
+            while True:
+                with self._mail_lock:
+                    if not self._mail:  # (with the check: a frame posted now finds no courier)
+                        self._courier = None
+                        return
+                    party, msg = self._mail.popleft()
+                party.receive(msg)
+        except BaseException:
+            with self._mail_lock:
+                self._courier = None
+            raise
+
     def settled(self) -> bool:
         """Every frame sent has been handled by the other side: nothing is in flight."""
         with self._lock:
@@ -360,6 +473,7 @@ class LockstepClock:
         progress = time.monotonic()
         seen = self._progress()
         while True:
+            self._deliver()  # frames sent without the send lock, if any
             if flag.is_set():
                 return True
             if self.free_running:

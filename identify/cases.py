@@ -24,7 +24,7 @@ from drivegain.identify.design import (
     stacked_factor,
 )
 from drivegain.identify.estimate import LSResult, ls_from_factor
-from drivegain.identify.hac import bartlett_lag, long_run_covariance, sandwich
+from drivegain.identify.hac import LongRunSum, bartlett_lag, sandwich
 from drivegain.identify.weighting import joint_sigma
 
 
@@ -214,25 +214,53 @@ def case_covariance(
     x_aug = np.append(x, -1.0)
     bread = np.zeros((p, p))
     cross = np.zeros((p, n))
-    scores, resid = [], []
+    resid = []
+    # Two passes over row blocks (the weighted rows of a long run, samples × joints ×
+    # unknowns, would dominate memory): bread, cross terms and residuals, whose
+    # autocorrelation gives the lag; then the scores' long-run sum with that lag.
     for d, t in zip(designs, transforms, strict=True):
-        blocks = np.stack([(d.block(j) @ t) / sigma[j] for j in range(n)], axis=1)
-        a = blocks[:, :, :p]
-        e = blocks @ x_aug  # A x̂ − c per sample and joint
-        flat = a.reshape(-1, p)
-        bread += flat.T @ flat
-        scores.append(np.matmul(e[:, None, :], a)[:, 0, :])
-        resid.append(e)
-        # ∂c_j/∂g_m = kt[j, m] v_m / σ_j
-        dc = d.run.current[:, None, :] * d.kt[None, :, :] / sigma[None, :, None]
-        cross += flat.T @ dc.reshape(-1, n)
+        parts = []
+        for sl in _row_blocks(d.rows):
+            sub = d.subset(sl)
+            a, e = _weighted_rows(sub, t, sigma, x_aug)
+            flat = a.reshape(-1, p)
+            bread += flat.T @ flat
+            # ∂c_j/∂g_m = kt[j, m] v_m / σ_j
+            dc = sub.run.current[:, None, :] * sub.kt[None, :, :] / sigma[None, :, None]
+            cross += flat.T @ dc.reshape(-1, n)
+            parts.append(e)
+        resid.append(np.concatenate(parts))
     lag = bartlett_lag(resid)
+    del resid
+    meat = LongRunSum(p, lag)
+    for d, t in zip(designs, transforms, strict=True):
+        for sl in _row_blocks(d.rows):
+            a, e = _weighted_rows(d.subset(sl), t, sigma, x_aug)
+            meat.add(np.matmul(e[:, None, :], a)[:, 0, :])
+        meat.end_run()
     rows = sum(d.rows for d in designs) * n
-    cov = sandwich(bread, long_run_covariance(scores, lag), rows, p)
+    cov = sandwich(bread, meat.meat(), rows, p)
     if gain_cov is not None:
         j_g = np.linalg.pinv(bread, hermitian=True) @ cross
         cov = cov + j_g @ np.asarray(gain_cov, float) @ j_g.T
     return cov, lag
+
+
+#: Samples per row block of :func:`case_covariance` (bounds the memory of long runs).
+ROW_BLOCK = 2048
+
+
+def _row_blocks(samples: int) -> list[slice]:
+    return [slice(k, min(k + ROW_BLOCK, samples)) for k in range(0, samples, ROW_BLOCK)]
+
+
+def _weighted_rows(
+    d: Design, t: np.ndarray, sigma: np.ndarray, x_aug: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted columns A (N, n, p) of ``d`` and its equation errors A x̂ − c (N, n)."""
+    p = x_aug.size - 1
+    blocks = np.stack([(d.block(j) @ t) / sigma[j] for j in range(d.n)], axis=1)
+    return blocks[:, :, :p], blocks @ x_aug
 
 
 def predictions(

@@ -17,14 +17,25 @@ says plain LS is biased here and the errors-in-variables treatment matters.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
 from drivegain.config.payload import Payload
 from drivegain.identify.design import Design
-from drivegain.identify.hac import long_run_covariance
-from drivegain.identify.ml import MLFit, linear_start, ls_rows, ml_influence, run_arrays
+from drivegain.identify.hac import LongRunSum
+from drivegain.identify.ml import (
+    LinearStart,
+    MLFit,
+    RunArrays,
+    chunks,
+    least_squares,
+    ls_rows,
+    run_arrays,
+    scores,
+    whitened_block,
+)
 
 #: Significance level below which the report says plain LS is biased on the data.
 LEVEL = 0.01
@@ -60,27 +71,15 @@ class EIVTest:
         return self.p_value < LEVEL
 
 
-def _ls_influence(a: Design, b: Design, payload: Payload) -> tuple[np.ndarray, list[np.ndarray]]:
-    """Weighted LS estimate and, per run, each sample's first-order influence on it (N, P)."""
-    runs = [run_arrays(a, payload), run_arrays(b, payload)]
-    kt = np.asarray(a.kt, float)
-    theta, w = linear_start(runs, kt)
-    mats = [ls_rows(r, kt) for r in runs]
-    resids = [m @ theta - r.tau_known for m, r in zip(mats, runs, strict=True)]
-    p = theta.size
-    bread = np.zeros((p, p))
-    for m in mats:
-        flat = (m * w[None, :, None]).reshape(-1, p)
-        bread += flat.T @ flat
-    h_inv = np.linalg.pinv(bread, hermitian=True)
-    infl = [
-        -np.matmul((e * w**2)[:, None, :], m)[:, 0, :] @ h_inv
-        for m, e in zip(mats, resids, strict=True)
-    ]
-    return theta, infl
-
-
-def eiv_test(fit: MLFit, a: Design, b: Design, payload: Payload) -> EIVTest:
+def eiv_test(
+    fit: MLFit,
+    a: Design,
+    b: Design,
+    payload: Payload,
+    *,
+    runs: Sequence[RunArrays] | None = None,
+    ls: LinearStart | None = None,
+) -> EIVTest:
     """Durbin-Wu-Hausman comparison of plain LS with the ML gains on the same data.
 
     Parameters
@@ -89,6 +88,10 @@ def eiv_test(fit: MLFit, a: Design, b: Design, payload: Payload) -> EIVTest:
         The maximum-likelihood fit of runs a and b (:func:`~drivegain.identify.ml.ml_fit`).
     a, b, payload
         The designs and payload it was fitted on.
+    runs
+        ``[run_arrays(a, payload), run_arrays(b, payload)]`` when the caller has them already.
+    ls
+        :func:`~drivegain.identify.ml.least_squares` of those runs when already computed.
 
     Returns
     -------
@@ -98,13 +101,37 @@ def eiv_test(fit: MLFit, a: Design, b: Design, payload: Payload) -> EIVTest:
     from scipy.stats import chi2
 
     nb, n = a.nb, a.n
-    theta_ls, infl_ls = _ls_influence(a, b, payload)
-    infl_ml = ml_influence(fit, a, b, payload)
+    if runs is None:
+        runs = [run_arrays(a, payload), run_arrays(b, payload)]
+    kt = np.asarray(a.kt, float)
+    kt_inv = np.linalg.inv(kt)
+    if ls is None:
+        ls = least_squares(runs, kt)
+    theta_ml = np.concatenate([fit.chi, fit.gains, fit.payload_unknown])
+    whiten = np.linalg.inv(np.linalg.cholesky(fit.noise))
     gains = slice(nb, nb + n)
-    diff_terms = [(l_ - m_)[:, gains] for l_, m_ in zip(infl_ls, infl_ml, strict=True)]
-    cov_d = long_run_covariance(diff_terms, fit.lag)
-    cov_ls = long_run_covariance([x[:, gains] for x in infl_ls], fit.lag)
-    d = theta_ls[gains] - fit.gains
+    bread_ml = (
+        fit.hessian if fit.hessian is not None else _ml_hessian(theta_ml, runs, kt_inv, whiten)
+    )
+    # Only the gains' rows of each sample's first-order influence H⁻¹ψ_k enter the test: the
+    # per-sample influences are formed block by block, n columns each, never held whole.
+    proj_ls = np.linalg.pinv(ls.hessian, hermitian=True)[:, gains]
+    proj_ml = np.linalg.pinv(bread_ml, hermitian=True)[:, gains]
+    w2 = ls.weights**2
+    diff_sum, ls_sum = LongRunSum(n, fit.lag), LongRunSum(n, fit.lag)
+    for run in runs:
+        for sl in chunks(run.samples):
+            sub = run.rows(sl)
+            m = ls_rows(sub, kt)
+            e = m @ ls.theta - sub.tau_known
+            infl_ls = -np.matmul((e * w2)[:, None, :], m)[:, 0, :] @ proj_ls
+            infl_ml = scores(*whitened_block(theta_ml, sub, kt_inv, whiten)) @ proj_ml
+            diff_sum.add(infl_ls - infl_ml)
+            ls_sum.add(infl_ls)
+        diff_sum.end_run()
+        ls_sum.end_run()
+    cov_d, cov_ls = diff_sum.meat(), ls_sum.meat()
+    d = ls.theta[gains] - fit.gains
     # Rank from the eigenvalues: a direction with no variance carries no test.
     evals, evecs = np.linalg.eigh(cov_d)
     keep = evals > 1e-12 * max(float(evals.max()), 1e-300)
@@ -116,8 +143,20 @@ def eiv_test(fit: MLFit, a: Design, b: Design, payload: Payload) -> EIVTest:
         statistic=stat,
         dof=dof,
         p_value=p_value,
-        ls_gains=theta_ls[gains].copy(),
+        ls_gains=ls.theta[gains].copy(),
         ls_std=np.sqrt(np.clip(np.diag(cov_ls), 0.0, None)),
         difference_std=np.sqrt(np.clip(np.diag(cov_d), 0.0, None)),
         lag=fit.lag,
     )
+
+
+def _ml_hessian(
+    theta: np.ndarray, runs: Sequence[RunArrays], kt_inv: np.ndarray, whiten: np.ndarray
+) -> np.ndarray:
+    """Σ_k J̃_kᵀ J̃_k at θ (for a fit made without it), built in row blocks."""
+    bread = np.zeros((theta.size, theta.size))
+    for run in runs:
+        for sl in chunks(run.samples):
+            flat = whitened_block(theta, run.rows(sl), kt_inv, whiten)[0].reshape(-1, theta.size)
+            bread += flat.T @ flat
+    return bread

@@ -87,7 +87,8 @@ def long_run_covariance(scores: Sequence[np.ndarray], lag: int) -> np.ndarray:
 
     ``S = Σ_runs [Γ_0 + Σ_(l=1..L) (1 − l/(L+1)) (Γ_l + Γ_lᵀ)]`` with
     ``Γ_l = Σ_k ψ_k ψ_(k−l)ᵀ``. The scores must be evaluated at the estimate (they sum to
-    zero there); they are not demeaned.
+    zero there); they are not demeaned. Computed by :class:`LongRunSum` in one pass, at a cost
+    that does not grow with the lag.
 
     Parameters
     ----------
@@ -102,16 +103,68 @@ def long_run_covariance(scores: Sequence[np.ndarray], lag: int) -> np.ndarray:
         (parameters, parameters), positive semi-definite.
     """
     scores = _check_series(scores)
-    if lag < 0:
-        raise UsageError(f"lag must be ≥ 0, got {lag}")
-    p = scores[0].shape[1]
-    meat = np.zeros((p, p))
+    acc = LongRunSum(scores[0].shape[1], lag)
     for s in scores:
-        meat += s.T @ s
-        for lg in range(1, min(lag, s.shape[0] - 1) + 1):
-            gam = s[lg:].T @ s[:-lg]
-            meat += (1.0 - lg / (lag + 1.0)) * (gam + gam.T)
-    return meat
+        acc.add(s)
+        acc.end_run()
+    return acc.meat()
+
+
+class LongRunSum:
+    """:func:`long_run_covariance` accumulated over row blocks, so no run is held whole.
+
+    Feed each run's scores in consecutive row blocks of any size (:meth:`add`), then close the
+    run (:meth:`end_run`) before the next one starts; :meth:`meat` gives S.
+
+    Why it is exact and cheap: with ``B_k = Σ_(i=0..L) ψ_(k−i)`` the moving sum of L+1 scores
+    (ψ zero outside the run, k running L samples past its end),
+    ``Σ_k B_k B_kᵀ = Σ_(|l|≤L) (L+1−|l|) Γ_l = (L+1) S``: the Bartlett weights are the counts
+    of pairs inside a window. One outer product per sample whatever the lag, where the sum
+    over lags costs L of them; a block needs only the previous block's last L scores.
+    """
+
+    def __init__(self, params: int, lag: int):
+        if lag < 0:
+            raise UsageError(f"lag must be ≥ 0, got {lag}")
+        self.lag = int(lag)
+        self._sum = np.zeros((params, params))
+        self._tail = np.zeros((0, params))  # the current run's last ≤ L scores
+
+    def add(self, block: np.ndarray) -> None:
+        """Add the next rows of the current run, (rows, parameters)."""
+        x = np.asarray(block, dtype=float)
+        if x.ndim != 2 or x.shape[1] != self._sum.shape[0]:
+            raise UsageError(f"expected (rows, {self._sum.shape[0]}) scores, got {x.shape}")
+        if x.shape[0] == 0:
+            return
+        if self.lag == 0:
+            self._sum += x.T @ x
+            return
+        ext = np.concatenate([self._tail, x])
+        cum = np.zeros((ext.shape[0] + 1, ext.shape[1]))
+        np.cumsum(ext, axis=0, out=cum[1:])
+        first = self._tail.shape[0]
+        # B at ext row t: ext[max(0, t−L) .. t]; rows before the run's first are zero.
+        stop = np.arange(first, ext.shape[0]) + 1
+        moving = cum[stop] - cum[np.maximum(stop - self.lag - 1, 0)]
+        self._sum += moving.T @ moving
+        self._tail = ext[-self.lag :].copy()
+
+    def end_run(self) -> None:
+        """Close the current run: the windows that reach past its last sample."""
+        tail = self._tail
+        if tail.shape[0]:
+            # B of the L samples after the end: sums of the run's last L, L−1, ..., 1 scores
+            # (the whole run when it is shorter).
+            suffix = np.cumsum(tail[::-1], axis=0)
+            counts = np.minimum(np.arange(1, self.lag + 1), tail.shape[0])
+            moving = suffix[counts - 1]
+            self._sum += moving.T @ moving
+        self._tail = np.zeros((0, self._sum.shape[0]))
+
+    def meat(self) -> np.ndarray:
+        """S of every run added so far (call :meth:`end_run` after the last one)."""
+        return np.asarray(self._sum / (self.lag + 1.0))
 
 
 def sandwich(bread: np.ndarray, meat: np.ndarray, rows: int, params: int) -> np.ndarray:

@@ -30,7 +30,7 @@ residuals' autocorrelation.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import scipy.linalg
@@ -39,7 +39,7 @@ from drivegain.config.payload import PAYLOAD_PARAMS, Payload
 from drivegain.errors import IdentificationError
 from drivegain.identify.design import Design
 from drivegain.identify.estimate import r_factor
-from drivegain.identify.hac import bartlett_lag, lag1_autocorrelation, long_run_covariance
+from drivegain.identify.hac import LongRunSum, bartlett_lag, lag1_autocorrelation
 from drivegain.identify.hac import sandwich as hac_sandwich
 
 #: Gauss-Newton: stop when the step moves the whitened fit by less than this (squared norm,
@@ -59,36 +59,66 @@ RANK_TOL = 1e-10
 
 @dataclass(frozen=True)
 class RunArrays:
-    """One run's data as the ML model uses it.
+    """One run's data as the ML model uses it, read from the prepared run's regressor.
+
+    Nothing of the size of the regressor is copied here: :attr:`w`, :attr:`wu` and
+    :attr:`tau_known` are gathered when asked for, meant for row blocks (:meth:`rows`).
 
     Attributes
     ----------
     v
         Currents, A, (N, n).
-    w
-        Base-parameter regressor per joint, (N, n, nb).
-    wu
-        Unknown payload parameters' columns per joint, (N, n, nu) (zero when unloaded).
-    tau_known
-        Torque of the known payload parameters, N·m, (N, n) (zero when unloaded).
+    regressor
+        The prepared run's regressor columns, (N, n, c) (a view, not a copy).
+    base_idx
+        Its columns of the base parameters, (nb,).
+    unknown_idx
+        Its columns of the unknown payload parameters, (nu,); None for the unloaded run
+        (whose payload columns are zero).
+    known_idx, known_values
+        Its columns of the known payload parameters and their values (None when unloaded).
+    nu
+        Number of unknown payload parameters.
     """
 
     v: np.ndarray
-    w: np.ndarray
-    wu: np.ndarray
-    tau_known: np.ndarray
+    regressor: np.ndarray
+    base_idx: np.ndarray
+    unknown_idx: np.ndarray | None
+    known_idx: np.ndarray | None
+    known_values: np.ndarray
+    nu: int
 
     @property
     def samples(self) -> int:
         return int(self.v.shape[0])
 
+    @property
+    def w(self) -> np.ndarray:
+        """Base-parameter regressor per joint, (N, n, nb) (a copy: use on row blocks)."""
+        return self.regressor[:, :, self.base_idx]
+
+    @property
+    def wu(self) -> np.ndarray:
+        """Unknown payload parameters' columns per joint, (N, n, nu) (zero when unloaded)."""
+        if self.unknown_idx is None:
+            return np.zeros((self.samples, self.v.shape[1], self.nu))
+        return self.regressor[:, :, self.unknown_idx]
+
+    @property
+    def tau_known(self) -> np.ndarray:
+        """Torque of the known payload parameters, N·m, (N, n) (zero when unloaded)."""
+        if self.known_idx is None:
+            return np.zeros((self.samples, self.v.shape[1]))
+        return np.asarray(self.regressor[:, :, self.known_idx] @ self.known_values)
+
     def rows(self, sl: slice) -> RunArrays:
         """The samples ``sl`` (views, no copy)."""
-        return RunArrays(v=self.v[sl], w=self.w[sl], wu=self.wu[sl], tau_known=self.tau_known[sl])
+        return replace(self, v=self.v[sl], regressor=self.regressor[sl])
 
 
 def run_arrays(d: Design, payload: Payload) -> RunArrays:
-    """Split a design into the ML model's arrays (:class:`RunArrays`).
+    """The ML model's view of a design (:class:`RunArrays`).
 
     Parameters
     ----------
@@ -98,19 +128,21 @@ def run_arrays(d: Design, payload: Payload) -> RunArrays:
         The payload of the loaded run, whose ``known`` parameters fix the scale; an unloaded
         design gets zero payload columns of the same shape.
     """
-    reg = d.run.regressor
-    w = reg[:, :, d.base_idx]
-    n_samples, n = w.shape[0], d.n
     mask = payload.known_mask()
     unknown = np.flatnonzero(~mask)
+    unknown_idx = known_idx = None
     if d.payload_idx is not None:
-        wl = reg[:, :, d.payload_idx]
-        wu = wl[:, :, unknown]
-        tau_known = wl[:, :, mask] @ payload.values[mask]
-    else:
-        wu = np.zeros((n_samples, n, unknown.size))
-        tau_known = np.zeros((n_samples, n))
-    return RunArrays(v=np.asarray(d.run.current, float), w=w, wu=wu, tau_known=tau_known)
+        unknown_idx = d.payload_idx[unknown]
+        known_idx = d.payload_idx[mask]
+    return RunArrays(
+        v=np.asarray(d.run.current, float),
+        regressor=d.run.regressor,
+        base_idx=np.asarray(d.base_idx),
+        unknown_idx=unknown_idx,
+        known_idx=known_idx,
+        known_values=np.asarray(payload.values[mask], float),
+        nu=int(unknown.size),
+    )
 
 
 @dataclass(frozen=True)
@@ -135,6 +167,9 @@ class MLFit:
         Gains of the linear least-squares start (V as regressor), N·m/A.
     rows
         Scalar equations used (samples × joints over the runs).
+    hessian
+        H = Σ_k J̃_kᵀ J̃_k at the estimate, the bread of the sandwich (kept for the
+        errors-in-variables test, which needs the same H).
     """
 
     chi: np.ndarray
@@ -149,6 +184,7 @@ class MLFit:
     converged: bool
     start_gains: np.ndarray
     rows: int
+    hessian: np.ndarray | None = None
 
     @property
     def std_all(self) -> np.ndarray:
@@ -175,19 +211,26 @@ def _split(theta: np.ndarray, nb: int, n: int) -> tuple[np.ndarray, np.ndarray, 
 
 
 def predict(theta: np.ndarray, run: RunArrays, kt_inv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Model currents v̂ (A, (N, n)) and the model torques mapped by K⁻¹ (N·m, (N, n))."""
-    nb, n = run.w.shape[2], run.v.shape[1]
+    """Model currents v̂ (A, (N, n)) and the model torques mapped by K⁻¹ (N·m, (N, n)).
+
+    Evaluated in row blocks of :data:`CHUNK` samples: the gathered columns W, W_uL exist for
+    one block at a time.
+    """
+    nb, n = run.base_idx.size, run.v.shape[1]
     chi, g, chi_u = _split(theta, nb, n)
-    tau = run.w @ chi + run.tau_known
-    if chi_u.size:
-        tau = tau + run.wu @ chi_u
-    u = tau @ kt_inv.T
+    u = np.empty((run.samples, n))
+    for sl in chunks(run.samples):
+        sub = run.rows(sl)
+        tau = sub.w @ chi + sub.tau_known
+        if chi_u.size:
+            tau = tau + sub.wu @ chi_u
+        u[sl] = tau @ kt_inv.T
     return u / g[None, :], u
 
 
 def jacobian(theta: np.ndarray, run: RunArrays, kt_inv: np.ndarray) -> np.ndarray:
     """∂v̂/∂θ per sample, (N, n, P), θ = (χ, g, χ_uL)."""
-    nb, n = run.w.shape[2], run.v.shape[1]
+    nb, n = run.base_idx.size, run.v.shape[1]
     g = theta[nb : nb + n]
     m = kt_inv / g[:, None]  # diag(1/g) K⁻¹
     v_hat, _ = predict(theta, run, kt_inv)
@@ -214,7 +257,7 @@ def ls_rows(run: RunArrays, kt: np.ndarray) -> np.ndarray:
     Their product with θ = (χ, g, χ_uL) minus the known payload's torque is the equation error
     of every sample and joint, N·m.
     """
-    nb, n, nu = run.w.shape[2], run.v.shape[1], run.wu.shape[2]
+    nb, n, nu = run.base_idx.size, run.v.shape[1], run.nu
     m = np.zeros((run.samples, n, nb + n + nu))
     m[:, :, :nb] = -run.w
     m[:, :, nb : nb + n] = run.v[:, None, :] * kt[None, :, :]
@@ -222,32 +265,70 @@ def ls_rows(run: RunArrays, kt: np.ndarray) -> np.ndarray:
     return m
 
 
-def linear_start(runs: Sequence[RunArrays], kt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+@dataclass(frozen=True)
+class LinearStart:
+    """The least squares with V as regressor (:func:`least_squares`).
+
+    Attributes
+    ----------
+    theta
+        (χ, g, χ_uL) of the row-weighted least squares.
+    weights
+        Row weight of each joint, 1/σ_j from a first unweighted pass, 1/(N·m), (n,).
+    hessian
+        Its normal matrix Σ_k Σ_j w_j² m_kjᵀ m_kj, (P, P) (m_kj the rows of :func:`ls_rows`).
+    """
+
+    theta: np.ndarray
+    weights: np.ndarray
+    hessian: np.ndarray
+
+
+def least_squares(runs: Sequence[RunArrays], kt: np.ndarray) -> LinearStart:
     """θ of the least squares ``V K g − W χ − W_uL χ_uL = W_kL χ_kL`` (torque units).
 
     Rows of joint j are weighted by 1/σ_j of a first unweighted pass. With noisy currents this
     estimate is attenuated (errors in variables); it starts the likelihood search and is the
-    plain LS of the errors-in-variables test. Returns θ and the row weights used, 1/(N·m).
+    plain LS of the errors-in-variables test.
+
+    One pass over the samples in row blocks: each joint's rows ``[m_j | τ_kL,j]`` are reduced
+    to their R factor, from which both passes' solutions, the per-joint residual norms and the
+    normal matrix follow (``RᵀR = [m | τ]ᵀ[m | τ]``); no (samples × joints × unknowns) matrix
+    is ever held whole.
     """
     n = runs[0].v.shape[1]
-    mats = [ls_rows(r, kt) for r in runs]
-    p = mats[0].shape[2]
+    p = runs[0].base_idx.size + n + runs[0].nu
+    factors = np.zeros((n, p + 1, p + 1))
+    samples = 0
+    for run in runs:
+        for sl in chunks(run.samples):
+            sub = run.rows(sl)
+            aug = np.concatenate([ls_rows(sub, kt), sub.tau_known[:, :, None]], axis=2)
+            for j in range(n):
+                factors[j] = r_factor(np.vstack([factors[j], aug[:, j, :]]))
+            samples += sub.samples
 
-    def system(weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        rows_a = [(m * weights[None, :, None]).reshape(-1, p) for m in mats]
-        rows_y = [(r.tau_known * weights[None, :]).reshape(-1) for r in runs]
-        return np.vstack(rows_a), np.concatenate(rows_y)
+    def solve(weights: np.ndarray) -> np.ndarray:
+        r = r_factor((factors * weights[:, None, None]).reshape(-1, p + 1))
+        theta, *_ = np.linalg.lstsq(r[:p, :p], r[:p, p], rcond=None)
+        return np.asarray(theta)
 
     w = np.ones(n)
-    a, y = system(w)
-    theta, *_ = np.linalg.lstsq(a, y, rcond=None)
-    sigma = np.sqrt(np.mean(((a @ theta - y).reshape(-1, n)) ** 2, axis=0))
+    theta = solve(w)
+    x_aug = np.append(theta, -1.0)
+    sigma = np.sqrt(np.array([np.sum((f @ x_aug) ** 2) for f in factors]) / samples)
     top = float(sigma.max())
     if top > 0.0:
         w = 1.0 / np.maximum(sigma, 1e-9 * top)
-        a, y = system(w)
-        theta, *_ = np.linalg.lstsq(a, y, rcond=None)
-    return np.asarray(theta), w
+        theta = solve(w)
+    gram = np.einsum("jkp,jkq->jpq", factors[:, :, :p], factors[:, :, :p])
+    return LinearStart(theta=theta, weights=w, hessian=np.einsum("j,jpq->pq", w**2, gram))
+
+
+def linear_start(runs: Sequence[RunArrays], kt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """θ and the row weights (1/(N·m)) of :func:`least_squares`."""
+    ls = least_squares(runs, kt)
+    return ls.theta, ls.weights
 
 
 def ml_fit(
@@ -257,6 +338,7 @@ def ml_fit(
     *,
     start: np.ndarray | None = None,
     step: Callable[[str], None] | None = None,
+    runs: Sequence[RunArrays] | None = None,
 ) -> MLFit:
     """Maximum-likelihood drive gains from an unloaded run a and a loaded run b.
 
@@ -271,6 +353,9 @@ def ml_fit(
         Starting (χ, g, χ_uL); default the linear least squares of :func:`linear_start`.
     step
         Progress callback (one line per phase).
+    runs
+        ``[run_arrays(a, payload), run_arrays(b, payload)]`` when the caller has them already
+        (built here otherwise).
 
     Returns
     -------
@@ -291,7 +376,8 @@ def ml_fit(
             "no payload parameter is known: the scale of the gains is not determined "
             "(give at least the payload's mass)"
         )
-    runs = [run_arrays(a, payload), run_arrays(b, payload)]
+    if runs is None:
+        runs = [run_arrays(a, payload), run_arrays(b, payload)]
     kt = np.asarray(a.kt, float)
     kt_inv = np.linalg.inv(kt)
     nb, n = a.nb, a.n
@@ -358,10 +444,27 @@ def ml_fit(
     if step is not None:
         step("maximum likelihood: HAC covariance")
     # ``noise`` is already Σ̂ of the final θ (the loop's last update).
-    scores, bread, white = score_terms(theta, runs, kt_inv, noise)
+    whiten = np.linalg.inv(np.linalg.cholesky(noise))
+    white = [
+        np.concatenate(
+            [_whitened_residuals(theta, r.rows(sl), kt_inv, whiten) for sl in chunks(r.samples)]
+        )
+        for r in runs
+    ]
     lag = bartlett_lag(white)
+    rho = lag1_autocorrelation(white)
+    del white
+    bread = np.zeros((theta.size, theta.size))
+    meat = LongRunSum(theta.size, lag)
+    for r in runs:
+        for sl in chunks(r.samples):
+            jw, ew = whitened_block(theta, r.rows(sl), kt_inv, whiten)
+            meat.add(scores(jw, ew))
+            flat = jw.reshape(-1, theta.size)
+            bread += flat.T @ flat
+        meat.end_run()
     rows = sum(r.samples for r in runs) * n
-    cov = hac_sandwich(bread, long_run_covariance(scores, lag), rows, theta.size)
+    cov = hac_sandwich(bread, meat.meat(), rows, theta.size)
     chi, g, chi_u = _split(theta, nb, n)
     return MLFit(
         chi=chi.copy(),
@@ -371,11 +474,12 @@ def ml_fit(
         covariance=cov,
         noise=noise,
         lag=lag,
-        rho=lag1_autocorrelation(white),
+        rho=rho,
         iterations=rounds,
         converged=converged,
         start_gains=start_gains,
         rows=rows,
+        hessian=bread,
     )
 
 
@@ -390,62 +494,39 @@ def _augmented_factor(
     p = theta.size
     r = np.zeros((p + 1, p + 1))
     for run in runs:
-        for sl in _chunks(run.samples):
-            sub = run.rows(sl)
-            jw = whiten @ jacobian(theta, sub, kt_inv)
-            ew = (sub.v - predict(theta, sub, kt_inv)[0]) @ whiten.T
+        for sl in chunks(run.samples):
+            jw, ew = whitened_block(theta, run.rows(sl), kt_inv, whiten)
             block = np.concatenate([jw.reshape(-1, p), ew.reshape(-1, 1)], axis=1)
             r = r_factor(np.vstack([r, block]))
     return r
 
 
-def _chunks(samples: int) -> list[slice]:
+def chunks(samples: int) -> list[slice]:
+    """Row blocks of :data:`CHUNK` samples covering ``samples``."""
     return [slice(k, min(k + CHUNK, samples)) for k in range(0, samples, CHUNK)]
 
 
-def score_terms(
-    theta: np.ndarray, runs: Sequence[RunArrays], kt_inv: np.ndarray, noise: np.ndarray
-) -> tuple[list[np.ndarray], np.ndarray, list[np.ndarray]]:
-    """Per-sample scores, Gauss-Newton Hessian and whitened residuals at θ.
+def _whitened_residuals(
+    theta: np.ndarray, run: RunArrays, kt_inv: np.ndarray, whiten: np.ndarray
+) -> np.ndarray:
+    """ẽ_k = L⁻¹ (v_k − v̂_k), (N, n), with ``whiten`` = L⁻¹ (Σ = L Lᵀ)."""
+    return np.asarray((run.v - predict(theta, run, kt_inv)[0]) @ whiten.T)
 
-    Returns
-    -------
-    scores
-        Per run, ψ_k = J̃_kᵀ ẽ_k, (N, P): θ̂ − θ ≈ H⁻¹ Σ_k ψ_k to first order.
-    bread
-        H = Σ_k J̃_kᵀ J̃_k, (P, P).
-    white
-        Per run, the whitened residuals ẽ_k = L⁻¹ (v_k − v̂_k), (N, n), Σ = L Lᵀ.
+
+def whitened_block(
+    theta: np.ndarray, run: RunArrays, kt_inv: np.ndarray, whiten: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Whitened Jacobian J̃_k = L⁻¹ ∂v̂_k/∂θ, (N, n, P), and residuals ẽ_k, (N, n), of ``run``.
+
+    Meant for row blocks (:func:`chunks`): the Jacobian is the largest array of the fit.
     """
-    whiten = np.linalg.inv(np.linalg.cholesky(noise))
-    scores, white = [], []
-    bread = np.zeros((theta.size, theta.size))
-    for r in runs:
-        run_scores, run_white = [], []
-        for sl in _chunks(r.samples):
-            sub = r.rows(sl)
-            jw = whiten @ jacobian(theta, sub, kt_inv)
-            ew = (sub.v - predict(theta, sub, kt_inv)[0]) @ whiten.T
-            run_scores.append(np.matmul(ew[:, None, :], jw)[:, 0, :])
-            run_white.append(ew)
-            flat = jw.reshape(-1, theta.size)
-            bread += flat.T @ flat
-        scores.append(np.vstack(run_scores))
-        white.append(np.vstack(run_white))
-    return scores, bread, white
+    jw = whiten @ jacobian(theta, run, kt_inv)
+    return jw, _whitened_residuals(theta, run, kt_inv, whiten)
 
 
-def ml_influence(fit: MLFit, a: Design, b: Design, payload: Payload) -> list[np.ndarray]:
-    """Per run, each sample's first-order contribution H⁻¹ψ_k to θ̂ − θ, (N, P).
-
-    The influence of the fit's own data on its estimate (for tests comparing two estimators on
-    the same samples, :mod:`drivegain.identify.eiv`).
-    """
-    runs = [run_arrays(a, payload), run_arrays(b, payload)]
-    theta = np.concatenate([fit.chi, fit.gains, fit.payload_unknown])
-    scores, bread, _ = score_terms(theta, runs, np.linalg.inv(a.kt), fit.noise)
-    h_inv = np.linalg.pinv(bread, hermitian=True)
-    return [s @ h_inv for s in scores]
+def scores(jw: np.ndarray, ew: np.ndarray) -> np.ndarray:
+    """Per-sample scores ψ_k = J̃_kᵀ ẽ_k, (N, P): θ̂ − θ ≈ H⁻¹ Σ_k ψ_k to first order."""
+    return np.asarray(np.matmul(ew[:, None, :], jw)[:, 0, :])
 
 
 def _check_rank(jac: np.ndarray, names: Sequence[str], nb: int, n: int) -> None:

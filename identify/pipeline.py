@@ -89,6 +89,7 @@ class IdentifyRequest:
     plots: bool = True  # False: --no-plots, no figure is rendered (matplotlib not imported)
     consistent: cr.ConsistentRequest | None = None  # identify --consistent
     current: str = "reference"  # --current: reference or measured
+    current_delay: float = 0.0  # --current-delay: age of the current samples, samples
 
 
 #: what the report says when ``--no-plots`` skipped the figures
@@ -171,6 +172,10 @@ def _check_request(req: IdentifyRequest) -> None:
         )
     if req.cutoff is not None and not (math.isfinite(req.cutoff) and req.cutoff > 0):
         raise InputError(f"must be a positive number of Hz, got {req.cutoff}", key="--cutoff")
+    if not (math.isfinite(req.current_delay) and 0.0 <= req.current_delay <= 1.0):
+        raise InputError(
+            f"must be between 0 and 1 sample, got {req.current_delay}", key="--current-delay"
+        )
     if req.decimate is not None and req.decimate < 1:
         raise InputError(f"must be an integer >= 1, got {req.decimate}", key="--decimate")
     if req.out.exists() and not req.out.is_dir():
@@ -180,7 +185,13 @@ def _check_request(req: IdentifyRequest) -> None:
 def _filter_for(run: LoadedRun, req: IdentifyRequest) -> FilterSettings:
     bandwidth = trajectory_bandwidth(run.attachments)
     try:
-        return default_filter(run.rate_hz, bandwidth, cutoff_hz=req.cutoff, decimate=req.decimate)
+        return default_filter(
+            run.rate_hz,
+            bandwidth,
+            cutoff_hz=req.cutoff,
+            decimate=req.decimate,
+            current_delay=req.current_delay,
+        )
     except InputError as exc:
         raise InputError(f"run {run.label} ({run.path}): {exc}") from None
 
@@ -204,6 +215,7 @@ def _run_info(run: LoadedRun, prepared: PreparedRun) -> RunInfo:
             "order": st.order,
             "decimate": st.decimate,
             "trim": st.trim,
+            "current_delay": st.current_delay,
         },
         notes=list(run.notes)
         + (
@@ -359,7 +371,17 @@ def run_identify(req: IdentifyRequest) -> IdentifyOutcome:
         The data cannot determine the unknowns (nothing is written).
     """
     with limited_blas_threads(1):
-        return _run_identify(req)
+        if not req.plots:
+            return _run_identify(req)
+        from drivegain.identify import plots
+
+        # matplotlib's import and the drawing go to a forked worker started now, so its
+        # import overlaps the reading and the fit.
+        plots.start_worker()
+        try:
+            return _run_identify(req)
+        finally:
+            plots.stop_worker()
 
 
 def _run_identify(req: IdentifyRequest) -> IdentifyOutcome:
@@ -417,9 +439,9 @@ def _run_identify(req: IdentifyRequest) -> IdentifyOutcome:
         doc["method"]["apriori_from_gear_ratio"] = list(robot.apriori_from_gear_ratio)
         with _staging(req.out) as tmp:
             if req.plots:
-                from drivegain.identify.plots import write_plots
+                from drivegain.identify import plots as plotting
 
-                plots = write_plots(result, robot.joint_names, tmp)
+                plots = plotting.write_plots(result, robot.joint_names, tmp)
             else:
                 plots = {}
                 doc["figures"] = NO_PLOTS
@@ -512,6 +534,7 @@ def identify_command(args: argparse.Namespace) -> int:
         plots=not getattr(args, "no_plots", False),
         consistent=cr.request_from_args(args),
         current=getattr(args, "current", None) or "reference",
+        current_delay=getattr(args, "current_delay", None) or 0.0,
     )
     outcome = run_identify(req)
     print(_summary(outcome, outcome.robot.joint_names))

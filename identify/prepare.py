@@ -399,6 +399,20 @@ def _nonzero_series(model: RobotModel, columns: Sequence[str]) -> np.ndarray:
 _SERIES_BLOCK = 48
 
 
+def aligned_current(current: np.ndarray, delay: float) -> np.ndarray:
+    """Currents interpolated onto the position samples: ``c[k] ← (1−d)·c[k] + d·c[k+1]``.
+
+    Sample k of a current ``delay`` samples old stands for t_k − d·T; between it and sample
+    k+1 (t_k + (1−d)·T) the value at t_k is the linear interpolation. The last sample is kept
+    (it falls in the trimmed border). ``delay`` 0 returns ``current`` itself.
+    """
+    if delay == 0.0 or current.shape[0] < 2:
+        return current
+    out = current.copy()
+    out[:-1] = (1.0 - delay) * current[:-1] + delay * current[1:]
+    return out
+
+
 def prepare_recording(
     model: RobotModel,
     columns: Sequence[str],
@@ -455,7 +469,7 @@ def prepare_recording(
         Too few samples for the filters, NaN/inf.
     """
     q = np.asarray(q, dtype=float)
-    current = np.asarray(current, dtype=float)
+    current = aligned_current(np.asarray(current, dtype=float), settings.current_delay)
     n_samples, n = q.shape
     src = source or None
     qf, qd, qdd = filtered_derivatives(q, rate_hz, settings, source=src)
@@ -513,7 +527,7 @@ def prepare_recording(
     return PreparedRun(
         label=label,
         t=t0 + keep * f / rate_hz,
-        regressor=w_all[keep],
+        regressor=_compact(w_all, keep),
         columns=tuple(columns),
         current=c_all[keep],
         rate_hz=rate_hz / f,
@@ -524,6 +538,19 @@ def prepare_recording(
         period_s=period_s,
         rest_samples=int(rest.sum()),
     )
+
+
+def _compact(a: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """``a[keep]`` for increasing ``keep``, moved to the front of ``a`` in place.
+
+    A gathered copy of a long run's regressor would double its memory for a moment; with
+    ``keep[i] ≥ i`` a block's sources lie at or after its destination and after every
+    earlier block's, so nothing is overwritten before it is read. Returns a view of ``a``.
+    """
+    for s in range(0, keep.size, CHUNK):
+        blk = keep[s : s + CHUNK]
+        a[s : s + blk.size] = a[blk]
+    return a[: keep.size]
 
 
 def trajectory_bandwidth(attachments: Mapping[str, bytes]) -> float | None:

@@ -60,12 +60,18 @@ class FilterSettings:
         Decimation factor (1: no decimation).
     trim
         Samples dropped at each border after decimation (filter transients).
+    current_delay
+        Age of each current sample relative to its position sample, in samples (0 to 1): the
+        current recorded at t_k stands for the torque at t_k − current_delay/rate. 0.5 for
+        drives that report the current averaged over the period ending at the sample (the
+        simulated drives do); the currents are interpolated onto the position samples.
     """
 
     cutoff_hz: float
     order: int = 4
     decimate: int
     trim: int
+    current_delay: float = 0.0
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.cutoff_hz) and self.cutoff_hz > 0):
@@ -78,6 +84,10 @@ class FilterSettings:
             raise InputError(f"must be an integer >= 1, got {self.decimate}", key="decimate")
         if isinstance(self.trim, bool) or not isinstance(self.trim, int) or self.trim < 0:
             raise InputError(f"must be an integer >= 0, got {self.trim!r}", key="trim")
+        if not (math.isfinite(self.current_delay) and 0.0 <= self.current_delay <= 1.0):
+            raise InputError(
+                f"must be between 0 and 1 sample, got {self.current_delay}", key="current_delay"
+            )
 
     def output_rate(self, rate_hz: float) -> float:
         """Sample rate after decimation, Hz."""
@@ -173,6 +183,7 @@ def default_filter(
     cutoff_hz: float | None = None,
     decimate: int | None = None,
     order: int = 4,
+    current_delay: float = 0.0,
 ) -> FilterSettings:
     """Filter settings derived from the sample rate and the trajectory's bandwidth.
 
@@ -192,6 +203,8 @@ def default_filter(
         Overrides (``--cutoff``, ``--decimate``); the trim is derived for them.
     order
         Butterworth order.
+    current_delay
+        Age of the current samples, samples (:class:`FilterSettings`).
 
     Raises
     ------
@@ -231,7 +244,13 @@ def default_filter(
     if isinstance(order, bool) or not isinstance(order, int) or order < 1:
         raise InputError(f"must be an integer >= 1, got {order!r}", key="order")
     trim = _trim_for(rate_hz, cutoff_hz, order, decimate)
-    return FilterSettings(cutoff_hz=float(cutoff_hz), order=order, decimate=decimate, trim=trim)
+    return FilterSettings(
+        cutoff_hz=float(cutoff_hz),
+        order=order,
+        decimate=decimate,
+        trim=trim,
+        current_delay=float(current_delay),
+    )
 
 
 def _where(source: str | Path | None) -> dict[str, Any]:

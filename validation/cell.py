@@ -9,7 +9,8 @@ references from quantised motor encoders, the current loop adds its error, the t
 integrate the motion. What a drive reports is recorded: motor encoder counts at the SYNC and the
 current reference averaged over the period that just ended, in steps of 0.1 % of the rated
 current (the TPDO's resolution). The tracking error, the noise fed back through the loops and
-the half-period offset of the averaged currents are all in the data, as in a real log.
+the offset of the averaged currents are all in the data, as in a real log; the runs state that
+offset (:func:`current_delay`) as a user who knows the drives states it to ``identify``.
 
 The CAN stack is left out: the lockstep acquisition of one 30 s run costs minutes, this costs
 seconds (see docs/validation.md for the measured time per seed).
@@ -38,6 +39,16 @@ from drivegain.validation.world import SimRun, World
 
 #: Resolution of the reported current, fraction of the rated current (TPDO in per mille).
 CURRENT_STEP = 1e-3
+
+
+def current_delay(substeps: int) -> float:
+    """Age of the recorded currents relative to the positions, samples.
+
+    Half a period for the mean over the period that ends at the position sample, plus half an
+    internal step: the semi-implicit Euler step applies a step's current over the whole step
+    that follows the time it was computed for.
+    """
+    return 0.5 + 0.5 / substeps
 
 
 def closed_loop_run(
@@ -108,7 +119,9 @@ def closed_loop_run(
         current = current + rng.standard_normal(current.shape) * scenario.current_fraction * rated
     step = CURRENT_STEP * rated
     current = np.rint(current / step) * step
-    return SimRun(label=label, payload=payload, q=q, current=current)
+    return SimRun(
+        label=label, payload=payload, q=q, current=current, current_delay=current_delay(substeps)
+    )
 
 
 def closed_loop_three(world: World, scenario: Scenario, rng: np.random.Generator) -> list[SimRun]:

@@ -130,11 +130,12 @@ COVERAGE_BAND = (0.90, 0.99)
 RANDOM_HARMONICS = 5
 RANDOM_BASE_HZ = 0.1
 RANDOM_PERIODS = 6
-#: Closed loop: internal step of the physics (s; 2 per 250 Hz sample), velocity-loop bandwidth
-#: (Hz; half the cell's 60 Hz, which needs 0.5 ms steps: 2π·30 Hz·2 ms = 0.38 rad stays within
-#: the cell's stability limit of 0.4 rad), and the lead-in run before the recording starts, so
-#: the loops have settled (s). The cell's 0.5 ms steps would cost 4 times as much.
-LOOP_STEP_S = 0.002
+#: Closed loop: internal step of the physics (s; the simulated cell's own 0.5 ms, 8 per 250 Hz
+#: sample: with 2 ms steps the explicit Coulomb friction makes the velocity chatter at every
+#: reversal, 0.6 rad/s per step on joint 6, a simulator artefact that biased g5 and g6 by 1-3 %
+#: and depended chaotically on the lead-in), velocity-loop bandwidth (Hz; half the cell's 60 Hz),
+#: and the lead-in run before the recording starts, so the loops have settled (s).
+LOOP_STEP_S = 0.0005
 LOOP_BANDWIDTH_HZ = 30.0
 LEAD_IN_S = 1.0
 #: Internal step of the simulated cell (drivers/simconfig.py ``max_step_s``), s: the loop noise

@@ -182,12 +182,16 @@ class SimRun:
         Quantised joint positions, (N, n), rad.
     current
         Current references, (N, n), A.
+    current_delay
+        Age of the current samples relative to the positions, samples (what a user who knows
+        the drives gives ``identify --current-delay``).
     """
 
     label: str
     payload: Payload | None
     q: np.ndarray
     current: np.ndarray
+    current_delay: float = 0.0
 
 
 def simulate(
@@ -219,7 +223,7 @@ def prepare(world: World, run: SimRun) -> PreparedRun:
         q=run.q,
         current=run.current,
         rate_hz=world.rate_hz,
-        settings=world.settings,
+        settings=replace(world.settings, current_delay=run.current_delay),
         payload=run.payload,
     )
 

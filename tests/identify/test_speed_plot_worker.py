@@ -1,0 +1,41 @@
+"""The forked plotting worker (issue 19): draws what it is sent, and on any failure the figures
+are drawn in the calling process, which then raises the real error."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from drivegain.identify import plots
+
+
+@pytest.fixture
+def worker():
+    plots.start_worker()
+    yield plots._WORKER
+    plots.stop_worker()
+
+
+def _jobs(folder: Path) -> list[plots.Job]:
+    curve = np.array([[0.5, 0.2], [1.0, 0.1], [5.0, 0.15]])
+    return [(plots.draw_alpha, (curve, 1.0, folder / "alpha.png"))]
+
+
+def test_the_worker_draws_the_jobs(worker, tmp_path: Path) -> None:
+    if worker is None:
+        pytest.skip("no fork here, or other threads run: figures are drawn in-process")
+    assert worker.run(_jobs(tmp_path))
+    assert (tmp_path / "alpha.png").stat().st_size > 1000
+    plots.stop_worker()
+    assert not worker.proc.is_alive()
+
+
+def test_a_failing_job_is_redrawn_here_and_raises(worker, tmp_path: Path, monkeypatch) -> None:
+    missing = tmp_path / "no such folder"
+    monkeypatch.setattr(plots, "plot_jobs", lambda *_a: (_jobs(missing), {"alpha": "alpha.png"}))
+    with pytest.raises(FileNotFoundError):
+        plots.write_plots(None, [], missing)  # type: ignore[arg-type]
+    if worker is not None:  # still serving after the failure
+        assert worker.run(_jobs(tmp_path))
