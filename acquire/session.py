@@ -2,8 +2,11 @@
 
 The cycle loop runs on the thread that calls :meth:`Session.run` (one thread; the caller starts a
 dedicated one). Each cycle: wait for the deadline (``realtime``) or not at all (``lockstep``), send
-the setpoints and SYNC and collect the TPDOs (:meth:`Master.cycle`), supervise, hand the cycle to
-the recorder thread. Faults (drive, bus, supervision, recorder) quick-stop every drive and finish
+the setpoints and SYNC, collect TPDOs, supervise, hand the cycle to the recorder thread. Lockstep
+takes the TPDOs of the SYNC just sent (:meth:`Master.cycle`); realtime is pipelined
+(:meth:`Master.cycle_pipelined`): after SYNC k the TPDOs of cycle k−1 are recorded against cycle
+k−1 (its ``cycle``, ``t``, SYNC time, setpoint) and supervised, a period later
+(docs/realtime.md). Faults (drive, bus, supervision, recorder) quick-stop every drive and finish
 the log with the fault as its last event; an operator stop decelerates to rest with a
 jerk-limited ruckig profile, disables and finishes the log with the stop recorded.
 """
@@ -43,7 +46,7 @@ from drivegain.acquire.stats import LoopStats
 from drivegain.acquire.stop import StopRequest
 from drivegain.acquire.supervision import Supervisor
 from drivegain.drivers.clock import Clock
-from drivegain.drivers.master import DriveEvent, Master
+from drivegain.drivers.master import CycleSample, DriveEvent, Master
 from drivegain.drivers.objects import EmcyCode
 from drivegain.drivers.realtime import RealtimePolicy
 from drivegain.errors import DriveError, DrivegainError, OperatorStop
@@ -102,6 +105,16 @@ class RunResult:
     max_following_error: list[float] = field(default_factory=list)
 
 
+@dataclass(frozen=True)
+class _Sent:
+    """A cycle the loop sent: what its record needs besides the drives' answers."""
+
+    cycle: int
+    setpoint: np.ndarray  # rad, sent with its SYNC
+    log_ns: int  # the pacer's log time of the cycle
+    interval_s: float | None  # since the previous SYNC (realtime), s
+
+
 class _Setpoints:
     """Samples a motion at the cycle times, a block at a time (bounded memory)."""
 
@@ -153,6 +166,15 @@ class Session:
         The realtime policy of the rig that owns ``master`` (``Rig.policy``; default
         :func:`~drivegain.acquire.rig.realtime_policy` of ``cfg``). The run enters its cycle
         thread part (SCHED_FIFO); its process part (garbage-collector freeze) is the rig's.
+    pipelined
+        Collect each cycle's TPDOs one cycle later (:meth:`Master.cycle_pipelined`); default:
+        in realtime, not in lockstep.
+
+    Attributes
+    ----------
+    held_cycles
+        Cycles whose last TPDO came too late for the loop: after the next SYNC was due (same
+        cycle, or pipelined without the SYNC echo), after the one after it (pipelined).
     """
 
     def __init__(
@@ -165,8 +187,12 @@ class Session:
         pre_events: Sequence[DriveEvent] = (),
         on_cycle: Callable[[Session], None] | None = None,
         policy: RealtimePolicy | None = None,
+        pipelined: bool | None = None,
     ):
         self.cfg = cfg
+        self.pipelined = cfg.clock != Clock.LOCKSTEP if pipelined is None else pipelined
+        self.held_cycles = 0
+        self._after_sync = self.pipelined and master is not None and master.layout.tagged
         self.robot = cfg.robot
         self.master = master
         self.prepared = prepared
@@ -302,33 +328,24 @@ class Session:
         return self._finish_ok(recorder)
 
     def _loop(self, pacer: Pacer, recorder: Recorder) -> None:
+        started = time.monotonic()
+        try:
+            self._cycles(pacer, recorder)
+        finally:
+            self.stats.wall_s = time.monotonic() - started
+
+    def _cycles(self, pacer: Pacer, recorder: Recorder) -> None:
         assert self.motion is not None
         cfg = self.cfg
         lockstep = cfg.clock == Clock.LOCKSTEP
         setpoints = _Setpoints(self.motion, cfg.period_s, 0)
         settle_cycles = round(cfg.settle_s / cfg.period_s)
         period_ns = round(cfg.period_s * 1e9)
-        started = time.monotonic()
-        try:
-            self._cycles(pacer, recorder, setpoints, settle_cycles, lockstep, period_ns)
-        finally:
-            self.stats.wall_s = time.monotonic() - started
-
-    def _cycles(
-        self,
-        pacer: Pacer,
-        recorder: Recorder,
-        setpoints: _Setpoints,
-        settle_cycles: int,
-        lockstep: bool,
-        period_ns: int,
-    ) -> None:
-        assert self.motion is not None
-        cfg = self.cfg
         stopping = False
         end_cycle: int | None = None
         phase: Phase | None = None
         last_send = 0
+        in_flight: _Sent | None = None  # pipelined: the cycle sent, not recorded yet
         k = 0
         while True:
             if self.stop.requested and not stopping:
@@ -358,41 +375,66 @@ class Session:
                     f"{pacer.consecutive_overruns} consecutive cycles missed their deadline "
                     f"by more than one period (cycle {k})"
                 )
-            sample = self.master.cycle(q_sp)
+            sample: CycleSample | None
+            if self.pipelined:
+                step = self.master.cycle_pipelined(q_sp)
+                sync_s, sample = step.sent.sync_monotonic_s, step.sample
+            else:
+                sample = self.master.cycle(q_sp)
+                sync_s = sample.sync_monotonic_s
             # between the SYNCs themselves (a stall before this SYNC went out counts)
-            sent = round(sample.sync_monotonic_s * 1e9)
+            sent = round(sync_s * 1e9)
             pacer.sync_sent(k, sent)
             interval_s = (sent - last_send) / 1e9 if k > 0 and not lockstep else None
             self.stats.cycles += 1
-            self.stats.service.add(round(sample.latency_s * 1e9))
-            if sample.latency_s > cfg.period_s:
-                self.stats.late_cycles += 1
             if k > 0 and not lockstep:
                 self.stats.sync_dev.add(abs(sent - last_send - period_ns))
             last_send = sent
-            if not lockstep:
-                log_ns = sample.sync_time_ns  # the SYNC's own wall-clock time
-            recorder.put_cycle(
-                CycleRecord(
-                    cycle=k,
-                    t=k * cfg.period_s,
-                    log_time_ns=log_ns,
-                    position=np.asarray(sample.position, dtype=float),
-                    current_reference=np.asarray(sample.current_reference, dtype=float),
-                    current=np.asarray(sample.current, dtype=float),
-                    setpoint=np.array(q_sp, dtype=float),
-                    raw=sample.raw,
-                ),
-                block=lockstep,
-            )
-            self.cycle, self.t = k, k * cfg.period_s
-            # after recording: the cycle that shows the fault is in the log
-            self.supervisor.check(k, sample.position, q_sp, interval_s)
-            self._drive_events(self.master.drain_events())
+            this = _Sent(k, q_sp, log_ns, interval_s)
+            if sample is not None:  # pipelined: the previous cycle's, None on the first
+                self._record(sample, in_flight if self.pipelined else this, recorder)
+            if self.pipelined:
+                in_flight = this
             if self.on_cycle is not None:
                 self.on_cycle(self)
             k += 1
+        if in_flight is not None:
+            # the last SYNC's answers: after it, nothing is sent any more
+            last = self.master.collect_pending()
+            if last is not None:
+                self._record(last, in_flight, recorder)
         self.cycle = k
+
+    def _record(self, sample: CycleSample, sent: _Sent | None, recorder: Recorder) -> None:
+        """Record and supervise ``sample``, the drives' answers to the SYNC ``sent``."""
+        assert sent is not None
+        cfg, lockstep = self.cfg, self.cfg.clock == Clock.LOCKSTEP
+        k = sent.cycle
+        self.stats.service.add(round(sample.latency_s * 1e9))
+        if sample.latency_s > cfg.period_s:
+            self.stats.late_cycles += 1
+        # pipelined with the SYNC echo, a cycle's TPDOs are waited for after the next SYNC
+        if sample.latency_s > (1 + self._after_sync) * cfg.period_s:
+            self.held_cycles += 1
+        # the SYNC's own wall-clock time in realtime, simulated time in lockstep
+        log_ns = sent.log_ns if lockstep else sample.sync_time_ns
+        recorder.put_cycle(
+            CycleRecord(
+                cycle=k,
+                t=k * cfg.period_s,
+                log_time_ns=log_ns,
+                position=np.asarray(sample.position, dtype=float),
+                current_reference=np.asarray(sample.current_reference, dtype=float),
+                current=np.asarray(sample.current, dtype=float),
+                setpoint=np.array(sent.setpoint, dtype=float),
+                raw=sample.raw,
+            ),
+            block=lockstep,
+        )
+        self.cycle, self.t = k, k * cfg.period_s
+        # after recording: the cycle that shows the fault is in the log
+        self.supervisor.check(k, sample.position, sent.setpoint, sent.interval_s)
+        self._drive_events(self.master.drain_events())
 
     def _begin_stop(self, setpoints: _Setpoints, k: int) -> _Setpoints:
         """Plan the deceleration to rest from the setpoint state of the last cycle sent."""

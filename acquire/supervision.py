@@ -2,6 +2,10 @@
 
 The drives report their position sampled at the SYNC, before they apply the target that came with
 it, so the reference for the following error of cycle k is the setpoint sent at cycle k−1.
+
+Reaction time: cycle k is checked once its TPDOs are in, before SYNC k+1 in lockstep (same cycle)
+and after SYNC k+1 in realtime (pipelined), so a limit exceeded at cycle k stops the loop before
+SYNC k+1, resp. k+2 (docs/realtime.md).
 """
 
 from __future__ import annotations

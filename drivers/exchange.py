@@ -4,14 +4,27 @@ collected and tagged by SYNC counter, decoded to a :class:`CycleSample`.
 The drives echo the counter of the SYNC they answer (manufacturer object 0x2010) in every TPDO:
 a late TPDO is then dropped instead of being taken for the next cycle's. Drives without the echo
 get a layout without it, and the TPDOs of a cycle are those received between its SYNC and the
-deadline. TPDOs arrive in the bus notifier thread (:meth:`CycleExchanger.on_tpdo`); the caller's
-thread waits for the last one of the cycle.
+deadline. TPDOs arrive in the bus notifier thread (:meth:`CycleExchanger.on_tpdo`).
+
+Two ways to run a cycle:
+
+- same cycle (:meth:`CycleExchanger.exchange`, lockstep and the master's own sequences): send the
+  RPDOs and SYNC of cycle k, then wait for cycle k's TPDOs;
+- pipelined (:meth:`CycleExchanger.send` then :meth:`CycleExchanger.collect` one cycle later,
+  realtime): send SYNC k, then take the TPDOs of cycle k−1, which had a whole period to arrive,
+  so that the caller's thread does not wait for the drives between its SYNCs. With the SYNC echo
+  both cycles are open at once and each TPDO goes to the cycle its echo names; without it, a
+  cycle's TPDOs are those received between its SYNC and the next one, so its collection is closed
+  before the next SYNC goes out (see :class:`~drivegain.drivers.master.Master`).
+
+Either way a sample holds the drives' answers to its own SYNC, with the targets sent in it.
 """
 
 from __future__ import annotations
 
 import threading
 import time
+from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -78,6 +91,87 @@ class CycleSample:
     sync_monotonic_s: float = 0.0
 
 
+@dataclass(frozen=True)
+class SyncSent:
+    """A SYNC the master sent, whose TPDOs are collected later (pipelined cycle).
+
+    Attributes
+    ----------
+    cycle
+        Cycle index (as :attr:`CycleSample.cycle`).
+    sync_time_ns
+        Wall-clock time the SYNC was sent (``time.time_ns()``).
+    sync_monotonic_s
+        Monotonic time the SYNC was sent (``time.monotonic()``), s.
+    """
+
+    cycle: int
+    sync_time_ns: int
+    sync_monotonic_s: float
+
+
+@dataclass(frozen=True)
+class PipelinedCycle:
+    """What one :meth:`~drivegain.drivers.master.Master.cycle_pipelined` did.
+
+    Attributes
+    ----------
+    sent
+        The SYNC it sent (cycle k).
+    sample
+        The drives' answers to the previous SYNC (cycle k−1, its own SYNC times and targets);
+        None when no cycle was in flight (the first of a stream).
+    """
+
+    sent: SyncSent
+    sample: CycleSample | None
+
+
+class InFlight:
+    """One cycle whose TPDOs are being collected (filled in the notifier thread under the
+    exchanger's lock).
+
+    Attributes
+    ----------
+    cycle, counter
+        Cycle index and its SYNC counter byte.
+    counts
+        Targets sent with this cycle's SYNC, encoder counts, (n,).
+    frames
+        Per joint, the decoded TPDO1 and TPDO2 (None until received).
+    """
+
+    __slots__ = (
+        "complete",
+        "counter",
+        "counts",
+        "cycle",
+        "frames",
+        "last_arrival",
+        "missing",
+        "sync_clock",
+        "sync_mono_s",
+        "sync_ns",
+    )
+
+    def __init__(self, cycle: int, counter: int, n: int, counts: np.ndarray):
+        self.cycle = cycle
+        self.counter = counter
+        self.counts = counts
+        self.frames: list[list[tuple[int, ...] | None]] = [[None, None] for _ in range(n)]
+        self.missing = 2 * n
+        self.last_arrival = 0.0
+        self.complete = threading.Event()
+        self.sync_ns = 0
+        self.sync_mono_s = 0.0
+        self.sync_clock = 0.0
+
+    @property
+    def sent(self) -> SyncSent:
+        """When its SYNC went out."""
+        return SyncSent(self.cycle, self.sync_ns, self.sync_mono_s)
+
+
 class CycleExchanger:
     """RPDOs, SYNC and TPDO collection of every drive, one cycle at a time.
 
@@ -138,13 +232,12 @@ class CycleExchanger:
         self.tpdo_index: dict[int, tuple[DriveLink, int]] = {
             0x180 + 0x100 * k + d.node_id: (d, k) for d in self.drives for k in range(2)
         }
-        # Collection of the cycle in flight (notifier thread <-> caller thread).
+        # Collection of the cycles in flight (notifier thread <-> caller thread): one in the same
+        # cycle exchange, two while a pipelined cycle k is sent and k-1 not yet collected.
         self._lock = threading.Lock()
-        self._pending: int | None = None  # SYNC counter of the cycle being collected
-        self._frames: list[list[tuple[int, ...] | None]] = []
-        self._missing = 0
-        self._last_arrival = 0.0
-        self._complete = threading.Event()
+        self._open: list[InFlight] = []
+        # counters of cycles given up (quick stop after a fault): their late TPDOs are expected
+        self._abandoned: deque[int] = deque(maxlen=4)
         self.stale_frames = 0
         self.cycle = 0
         self.controlword = int(Command.SHUTDOWN)
@@ -179,7 +272,8 @@ class CycleExchanger:
 
     # --- one cycle -----------------------------------------------------------------------------
     def exchange(self, counts: np.ndarray) -> CycleSample:
-        """Send the RPDOs (``counts`` + :attr:`controlword`) and SYNC, wait for every TPDO.
+        """Send the RPDOs (``counts`` + :attr:`controlword`) and SYNC, wait for every TPDO
+        (same cycle).
 
         Raises
         ------
@@ -189,45 +283,115 @@ class CycleExchanger:
         BusError
             The interface failed.
         """
-        cycle = self.cycle
-        counter = ob.sync_counter(cycle)
-        n = len(self.drives)
-        with self._lock:
-            self._pending = counter
-            self._frames = [[None, None] for _ in range(n)]
-            self._missing = 2 * n
-            self._complete.clear()
-        cw = self.controlword
-        for d in self.drives:
-            send(self.network, 0x200 + d.node_id, self._rpdo.pack(int(counts[d.joint]), cw))
-        sync_ns = time.time_ns()
-        t_sync = time.monotonic()
-        sync_clock = self.supervisor.clock.now()
-        send(self.network, 0x80, bytes([counter]) if self.sync_counter else b"")
+        flight = self.send(counts)
         # on lockstep's simulated clock, a TPDO that cannot come any more is missing after
         # tpdo_s of simulated time, whatever the machine's load
-        complete = self.supervisor.clock.wait(
-            self._complete, self.timeouts.tpdo_s, f"the TPDOs of cycle {cycle}"
-        )
+        try:
+            complete = self.supervisor.clock.wait(
+                flight.complete, self.timeouts.tpdo_s, f"the TPDOs of cycle {flight.cycle}"
+            )
+        except BaseException:  # a hung simulation: nothing more to collect for this cycle
+            self._forget(flight)
+            raise
+        return self._close(flight, complete, self.supervisor.clock.sync_time(flight.sync_clock))
+
+    @property
+    def in_flight(self) -> InFlight | None:
+        """The oldest cycle sent and not collected yet, if any."""
         with self._lock:
-            frames = self._frames
-            self._pending = None
-            last = self._last_arrival
+            return self._open[0] if self._open else None
+
+    def send(self, counts: np.ndarray) -> InFlight:
+        """Open cycle :attr:`cycle` for its TPDOs, send the RPDOs (``counts`` +
+        :attr:`controlword`) and SYNC; the TPDOs are then taken by :meth:`collect`.
+
+        Raises
+        ------
+        BusError
+            The interface failed (the cycle is then given up).
+        """
+        cycle = self.cycle
+        counter = ob.sync_counter(cycle)
+        flight = InFlight(cycle, counter, len(self.drives), counts)
+        with self._lock:
+            self._open.append(flight)
+        try:
+            cw = self.controlword
+            for d in self.drives:
+                send(self.network, 0x200 + d.node_id, self._rpdo.pack(int(counts[d.joint]), cw))
+            flight.sync_ns = time.time_ns()
+            flight.sync_mono_s = time.monotonic()
+            flight.sync_clock = self.supervisor.clock.now()
+            send(self.network, 0x80, bytes([counter]) if self.sync_counter else b"")
+        except BaseException:
+            self._forget(flight)
+            raise
         self.cycle += 1
+        return flight
+
+    def collect(self, flight: InFlight) -> CycleSample:
+        """The TPDOs of ``flight`` (sent earlier by :meth:`send`): wait for those still missing
+        until ``tpdo_s`` after its own SYNC, then close it.
+
+        Raises
+        ------
+        DriveError
+            A fault pending in the supervisor, or a TPDO missing ``tpdo_s`` after its SYNC
+            (code 0x8250).
+        """
+        clock = self.supervisor.clock
+        left = self.timeouts.tpdo_s - (clock.now() - flight.sync_clock)
+        try:
+            complete = flight.complete.is_set() or clock.wait(
+                flight.complete, max(0.0, left), f"the TPDOs of cycle {flight.cycle}"
+            )
+        except BaseException:
+            self._forget(flight)
+            raise
+        # the SYNC's own send time: the clock's "last SYNC" is a later one by now
+        return self._close(flight, complete, flight.sync_clock)
+
+    def abandon(self) -> None:
+        """Give up every cycle in flight (a quick stop, a new enable): their TPDOs, when they
+        come, are dropped without an event."""
+        with self._lock:
+            for flight in self._open:
+                self._abandoned.append(flight.counter)
+            self._open.clear()
+
+    def _forget(self, flight: InFlight) -> None:
+        with self._lock:
+            if flight in self._open:
+                self._open.remove(flight)
+
+    def _close(self, flight: InFlight, complete: bool, sync_at: float) -> CycleSample:
+        """Close ``flight``: raise for a missing TPDO, else decode it (``sync_at``: its SYNC on
+        the supervisor's clock, for the latency)."""
+        self._forget(flight)
+        with self._lock:
+            frames = flight.frames
+            last = flight.last_arrival
         if not complete:
             self.supervisor.check()  # a fault explains the silence better than the time-out
             for d in self.drives:
                 for k in range(2):
                     if frames[d.joint][k] is None:
                         raise DriveError(
-                            f"TPDO{k + 1} of cycle {cycle} missing {self.timeouts.tpdo_s} s "
+                            f"TPDO{k + 1} of cycle {flight.cycle} missing {self.timeouts.tpdo_s} s "
                             f"after SYNC",
                             node=d.node_id,
                             state=d.state,
                             code=int(ob.EmcyCode.PDO_TIMEOUT),
                         )
-        latency = last - self.supervisor.clock.sync_time(sync_clock)
-        return self._decode(cycle, sync_ns, t_sync, counter, frames, counts, latency)
+        return self._decode(
+            flight.cycle,
+            flight.sync_ns,
+            flight.sync_mono_s,
+            flight.counter,
+            frames,
+            flight.counts,
+            last - sync_at,
+        )
 
     def _decode(
         self,
@@ -321,25 +485,30 @@ class CycleExchanger:
             return
         values = layout.unpack_from(data)
         with self._lock:
-            pending = self._pending
-            if pending is None:
+            if not self._open:
                 self.stale_frames += 1
                 return
             if self._tagged:
                 echo = values[self._echo_at[k]]
-                if echo != pending:
+                flight = next((f for f in self._open if f.counter == echo), None)
+                if flight is None:
                     self.stale_frames += 1
-                    self.supervisor.event(
-                        EventLevel.WARNING,
-                        d.node_id,
-                        None,
-                        f"TPDO{k + 1} of SYNC {echo} arrived during SYNC {pending}: dropped",
-                    )
+                    if echo not in self._abandoned:
+                        self.supervisor.event(
+                            EventLevel.WARNING,
+                            d.node_id,
+                            None,
+                            f"TPDO{k + 1} of SYNC {echo} arrived during SYNC "
+                            f"{self._open[-1].counter}: dropped",
+                        )
                     return
-            slot = self._frames[d.joint]
+            else:
+                # no echo: the cycle whose SYNC came last (only one is open at a time)
+                flight = self._open[-1]
+            slot = flight.frames[d.joint]
             if slot[k] is None:
-                self._missing -= 1
+                flight.missing -= 1
             slot[k] = values
-            if self._missing == 0:
-                self._last_arrival = sent
-                self._complete.set()
+            if flight.missing == 0:
+                flight.last_arrival = sent
+                flight.complete.set()

@@ -22,6 +22,14 @@ time-out). The master adds one :class:`can.Listener` to the network's notifier i
 sees every frame: TPDOs go to the exchanger, heartbeats, EMCYs and error frames to the
 supervisor. Faults noticed there are raised by the next :meth:`Master.cycle` or
 :meth:`Master.check` in the caller's thread, as :class:`DriveError`.
+
+Two cyclic exchanges (docs/realtime.md): :meth:`Master.cycle` (same cycle: SYNC k, then cycle k's
+TPDOs; lockstep) and :meth:`Master.cycle_pipelined` (SYNC k, then the TPDOs of cycle k−1, which
+had a whole period to arrive; realtime). Reaction time of the pipelined supervision, T the
+period: faults of the notifier thread (EMCY, heartbeat, NMT, bus) are raised before the next
+SYNC as in the same cycle exchange; what cycle k's TPDOs show (statusword fault, a missing TPDO,
+the positions the session supervises) is raised by the call that sends SYNC k+1, one period
+later, a missing TPDO at max(T, ``tpdo_s``) after SYNC k instead of ``tpdo_s``.
 """
 
 from __future__ import annotations
@@ -40,7 +48,7 @@ from drivegain.drivers import objects as ob
 from drivegain.drivers.bus import BusLoad
 from drivegain.drivers.cia402 import POWERED, Command, State
 from drivegain.drivers.configure import DriveConfigurator
-from drivegain.drivers.exchange import CycleExchanger, CycleSample
+from drivegain.drivers.exchange import CycleExchanger, CycleSample, PipelinedCycle, SyncSent
 from drivegain.drivers.heartbeat import HeartbeatProducer, MasterHeartbeat
 from drivegain.drivers.link import DriveLink, Timeouts, sdo_read, sdo_write, send
 from drivegain.drivers.simtime import HANG_S, LockstepClock, TimeBase, WallTime
@@ -55,6 +63,8 @@ __all__ = [
     "DriveEvent",
     "Master",
     "MasterHeartbeat",
+    "PipelinedCycle",
+    "SyncSent",
     "Timeouts",
 ]
 
@@ -325,6 +335,7 @@ class Master:
             self._exchanger.targets[d.joint] = counts
         for d in self._drives:
             self._walker.walk(d, State.OPERATION_ENABLED)
+        self._exchanger.abandon()  # a cycle of an earlier stream is not this one's
         self._exchanger.controlword = int(Command.ENABLE_OPERATION)
         self._streaming = True
         self._supervisor.event(EventLevel.INFO, None, None, "drives enabled (OPERATION_ENABLED)")
@@ -359,8 +370,79 @@ class Master:
             raise DriveError("the drives are not enabled (call enable() first)")
         self.check()
         ex = self._exchanger
-        ex.targets = ex.target_counts(target)
+        counts = ex.target_counts(target)
+        if ex.in_flight is not None:
+            self._drop_in_flight("a same-cycle exchange")
+        ex.targets = counts
         sample = ex.exchange(ex.targets)
+        ex.check_sample(sample)
+        return sample
+
+    def cycle_pipelined(self, target: np.ndarray) -> PipelinedCycle:
+        """One pipelined SYNC cycle: RPDOs (target 0x607A + controlword) and SYNC of cycle k,
+        then the TPDOs of cycle k−1, checked as :meth:`cycle` checks its own.
+
+        With the SYNC echo, cycle k−1's TPDOs are taken after SYNC k went out: they may come up
+        to ``tpdo_s`` after their SYNC without delaying SYNC k. Without it, a cycle's TPDOs are
+        those received before the next SYNC, so they are taken before SYNC k goes out (waiting,
+        if one is not in yet, up to ``tpdo_s`` after their SYNC). After the last call,
+        :meth:`collect_pending` takes the last cycle's TPDOs.
+
+        Parameters
+        ----------
+        target
+            Joint positions to reach one period after SYNC k, rad, (n,).
+
+        Returns
+        -------
+        PipelinedCycle
+            SYNC k's times, and the sample of cycle k−1 (None on the first call of a stream).
+
+        Raises
+        ------
+        DriveError
+            As :meth:`cycle`; a fault shown by cycle k−1's TPDOs or a TPDO of cycle k−1 missing
+            ``tpdo_s`` after its SYNC (code 0x8250) is raised after SYNC k went out.
+        BusError
+            As :meth:`cycle`.
+        TrajectoryError
+            ``target`` is not finite or outside the encoder range (nothing sent).
+        """
+        self._require_booted()
+        if not self._streaming:
+            raise DriveError("the drives are not enabled (call enable() first)")
+        self.check()
+        ex = self._exchanger
+        counts = ex.target_counts(target)
+        previous = ex.in_flight
+        sample: CycleSample | None = None
+        if previous is not None and not self.layout.tagged:
+            sample = ex.collect(previous)  # before the SYNC that would end its window
+        ex.targets = counts
+        flight = ex.send(counts)
+        if previous is not None and self.layout.tagged:
+            sample = ex.collect(previous)
+        if sample is not None:
+            ex.check_sample(sample)
+        return PipelinedCycle(flight.sent, sample)
+
+    def collect_pending(self) -> CycleSample | None:
+        """The TPDOs of the cycle :meth:`cycle_pipelined` sent last (the end of a stream),
+        checked as :meth:`cycle` checks its own; None if no cycle is in flight.
+
+        Raises
+        ------
+        DriveError
+            As :meth:`cycle`.
+        BusError
+            As :meth:`cycle`.
+        """
+        self._require_booted()
+        ex = self._exchanger
+        flight = ex.in_flight
+        if flight is None:
+            return None
+        sample = ex.collect(flight)
         ex.check_sample(sample)
         return sample
 
@@ -379,6 +461,7 @@ class Master:
         sv, ex = self._supervisor, self._exchanger
         try:
             self._streaming = False
+            ex.abandon()  # a pipelined cycle in flight: its answers no longer matter
             ex.controlword = int(Command.QUICK_STOP)
             for d in self._drives:
                 if not sv.alive(d):
@@ -411,6 +494,7 @@ class Master:
             return
         sv = self._supervisor
         self._streaming = False
+        self._exchanger.abandon()
         self._exchanger.controlword = int(Command.SHUTDOWN)
         for d in self._drives:
             if not sv.alive(d):
@@ -475,6 +559,18 @@ class Master:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+    def _drop_in_flight(self, why: str) -> None:
+        """Give up the pipelined cycle in flight, with a warning event."""
+        flight = self._exchanger.in_flight
+        self._exchanger.abandon()
+        if flight is not None:
+            self._supervisor.event(
+                EventLevel.WARNING,
+                None,
+                None,
+                f"TPDOs of cycle {flight.cycle} not collected before {why}: dropped",
+            )
 
     def _require_booted(self) -> None:
         if self._closed:

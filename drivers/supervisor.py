@@ -7,6 +7,11 @@ heartbeat time-out). The master's listener hands every heartbeat, EMCY and error
 :class:`Supervisor` in the bus notifier thread; faults noticed there wait in a list until the
 caller's thread asks (:meth:`Supervisor.check`, called by every cycle), so that they are raised
 where they can be handled.
+
+Reaction time: a fault noticed here (EMCY, heartbeat time-out, NMT state, bus) is raised before
+the next SYNC, in the same-cycle and the pipelined exchange alike; what the TPDOs of cycle k show
+is raised after SYNC k (same cycle) or after SYNC k+1 (pipelined, one period later); see
+:mod:`.master` and docs/realtime.md.
 """
 
 from __future__ import annotations
