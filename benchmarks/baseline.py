@@ -18,10 +18,19 @@ Usage from a benchmark::
         now = measure([*current_command("drivegain"), "excite", ...])
         then = measure([*base.command("drivegain"), "excite", ...])
         print(comparison_line("excite --budget 1", now, then))
+
+or with the scaffolding the benchmarks share: the ``--baseline-ref [REF]`` and ``--repeats``
+options (:func:`add_options`), the install announced with the table header (:func:`installed`)
+and one ``drivegain`` command of each tree, best of the repeats (:func:`now_and_then`)::
+
+    with installed(args.baseline_ref, args.repeats) as base:
+        now, then = now_and_then(base, ["excite", ...], ["--out", a], ["--out", b], args.repeats)
+        print(comparison_line("excite --budget 1", now, then))
 """
 
 from __future__ import annotations
 
+import argparse
 import os
 import shutil
 import subprocess
@@ -29,6 +38,8 @@ import sys
 import sysconfig
 import tempfile
 import time
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
@@ -205,6 +216,51 @@ class BaselineInstall:
             cwd=self.root,
         )
         return out.stdout.strip()
+
+
+def add_options(parser: argparse.ArgumentParser, what: str) -> None:
+    """The options of a comparison with an earlier commit: ``--baseline-ref [REF]`` (instead of
+    the benchmark, ``what`` beside REF's; REF defaults to :data:`DEFAULT_REF`) and
+    ``--repeats``."""
+    parser.add_argument(
+        "--baseline-ref",
+        nargs="?",
+        const=DEFAULT_REF,
+        metavar="REF",
+        help=f"instead: {what} beside REF's (default {DEFAULT_REF})",
+    )
+    parser.add_argument("--repeats", type=int, default=1, help="--baseline-ref: runs of each")
+
+
+@contextmanager
+def installed(ref: str, repeats: int) -> Iterator[BaselineInstall]:
+    """REF installed (:class:`BaselineInstall`), announced, and the comparison table's header
+    printed: the rows (:func:`comparison_line`) go inside the block."""
+    print(f"installing {ref} in a temporary venv (offline)...", flush=True)
+    with BaselineInstall(ref) as base:
+        print(f"  done in {base.install_s:.0f} s: {base.check()}")
+        print(f"best of {repeats}, interleaved; ratio = baseline / now")
+        print(comparison_header())
+        yield base
+
+
+def now_and_then(
+    base: BaselineInstall,
+    args: Sequence[str],
+    now_out: Sequence[str],
+    base_out: Sequence[str],
+    repeats: int,
+) -> tuple[Measure, Measure]:
+    """``drivegain ARGS`` of this tree (with ``now_out``) and of REF (with ``base_out``: the
+    output options, so the two never write the same file), best of ``repeats`` interleaved."""
+    now, then = best_of(
+        [
+            [*current_command("drivegain"), *args, *now_out],
+            [*base.command("drivegain"), *args, *base_out],
+        ],
+        repeats,
+    )
+    return now, then
 
 
 def _run(cmd: list[str], env: dict[str, str] | None = None) -> None:

@@ -72,28 +72,17 @@ def compare_with_baseline(ref: str, repeats: int, budget: float = 1.0) -> None:
     import tempfile
     from pathlib import Path
 
-    from baseline import (
-        BaselineInstall,
-        best_of,
-        comparison_header,
-        comparison_line,
-        current_command,
-    )
+    from baseline import comparison_line, installed, now_and_then
 
     robot = str(resource_path("tx40.toml"))
     with tempfile.TemporaryDirectory(prefix="bench-excite-") as tmp:
         work = Path(tmp)
-        print(f"installing {ref} in a temporary venv (offline)...", flush=True)
-        with BaselineInstall(ref) as base:
-            print(f"  done in {base.install_s:.0f} s: {base.check()}")
-            print(f"best of {repeats}, interleaved; ratio = baseline / now")
-            print(comparison_header())
-            args = ["excite", "--robot", robot, "--budget", f"{budget:g}"]
-            now, then = best_of(
-                [
-                    [*current_command("drivegain"), *args, "--out", str(work / "now.json")],
-                    [*base.command("drivegain"), *args, "--out", str(work / "base.json")],
-                ],
+        with installed(ref, repeats) as base:
+            now, then = now_and_then(
+                base,
+                ["excite", "--robot", robot, "--budget", f"{budget:g}"],
+                ["--out", str(work / "now.json")],
+                ["--out", str(work / "base.json")],
                 repeats,
             )
             print(comparison_line(f"excite --budget {budget:g}", now, then))
@@ -106,20 +95,15 @@ def compare_with_baseline(ref: str, repeats: int, budget: float = 1.0) -> None:
 
 
 def main() -> None:
+    from baseline import add_options
+
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--budgets", default="8,16,32,64", help="budgets in s, comma-separated")
     parser.add_argument(
         "--payload", action=argparse.BooleanOptionalAction, default=True, help="WTLS criterion"
     )
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument(
-        "--baseline-ref",
-        nargs="?",
-        const="c03ea6b",
-        metavar="REF",
-        help="instead: drivegain excite --budget 1 of this tree beside REF's (default c03ea6b)",
-    )
-    parser.add_argument("--repeats", type=int, default=1, help="--baseline-ref: runs of each")
+    add_options(parser, "drivegain excite --budget 1 of this tree")
     args = parser.parse_args()
     if args.baseline_ref:
         compare_with_baseline(args.baseline_ref, args.repeats)

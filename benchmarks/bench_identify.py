@@ -216,12 +216,13 @@ def _sim_pair(world, rng, seconds: float, rate: float, **noise):
 def coverage_study(seeds: int, seconds: float = 60.0) -> None:
     """Gains over many noise seeds: errors, coverage of the truth by ±2σ, spread of z."""
     from drivegain.identify.blas import limited_blas_threads
+    from drivegain.identify.compare import SeedSpread
     from drivegain.identify.procedure import Options, Problem, run_procedure
 
     with limited_blas_threads(1):
         world = _sim_world(20120701)
         robot, truth, bases = world[0], world[2], world[4]
-        z, err = [], []
+        gains, stds = [], []
         t0 = time.perf_counter()
         for seed in range(seeds):
             a, b = _sim_pair(
@@ -231,27 +232,15 @@ def coverage_study(seeds: int, seconds: float = 60.0) -> None:
                 Problem(robot=robot, bases=bases, unloaded=a, loaded=b),
                 Options(compare_forms=False),
             )
-            err.append(res.gains / truth.gains - 1)
-            z.append((res.gains - truth.gains) / res.gains_std)
+            gains.append(res.gains)
+            stds.append(res.gains_std)
         dt = (time.perf_counter() - t0) / seeds
-    z_a, e_a = np.array(z), np.array(err)
-    inside = np.abs(z_a) < 2
     print(
         f"coverage study: {seeds} seeds, 2 x {seconds:g} s at 250 Hz, 0.05 N·m torque noise, "
         f"1e-3° quantum ({dt:.1f} s per seed)"
     )
-    print(
-        f"  max |gain error| {100 * np.abs(e_a).max():.3f} %; truth within 2σ "
-        f"{inside.mean():.1%} of {inside.size} (per joint "
-        + ", ".join(f"{v:.0%}" for v in inside.mean(axis=0))
-        + ")"
-    )
-    print(
-        "  z = (ĝ−g)/σ̂: mean per joint "
-        + ", ".join(f"{v:+.2f}" for v in z_a.mean(axis=0))
-        + "; standard deviation per joint "
-        + ", ".join(f"{v:.2f}" for v in z_a.std(axis=0))
-    )
+    for line in SeedSpread.of(gains, stds, truth.gains).describe():
+        print(f"  {line}")
 
 
 def sigma_study(seeds: int, seconds: float = 60.0) -> None:
@@ -345,13 +334,7 @@ def _real_log(work: Path, robot: str) -> Path | None:
 
 def compare_with_baseline(ref: str, work: Path, quick: bool, repeats: int) -> None:
     """Whole ``drivegain identify`` processes, this tree beside REF (see the module docstring)."""
-    from baseline import (
-        BaselineInstall,
-        best_of,
-        comparison_header,
-        comparison_line,
-        current_command,
-    )
+    from baseline import best_of, comparison_line, current_command, installed, now_and_then
 
     from drivegain.config import resource_path
 
@@ -375,20 +358,10 @@ def compare_with_baseline(ref: str, work: Path, quick: bool, repeats: int) -> No
         [*current_command("drivegain"), "identify", "--help"], capture_output=True, text=True
     ).stdout
     paper = ["--estimator", "paper"] if "--estimator" in helptext else []
-    print(f"installing {ref} in a temporary venv (offline)...", flush=True)
-    with BaselineInstall(ref) as base:
-        print(f"  done in {base.install_s:.0f} s: {base.check()}")
-        print(f"best of {repeats}, interleaved; ratio = baseline / now")
-        print(comparison_header())
+    with installed(ref, repeats) as base:
         for name, args, plots_too in cases:
             out_now, out_base = ["--out", str(work / "out-now")], ["--out", str(work / "out-base")]
-            now, then = best_of(
-                [
-                    [*current_command("drivegain"), *args, *out_now],
-                    [*base.command("drivegain"), *args, *out_base],
-                ],
-                repeats,
-            )
+            now, then = now_and_then(base, args, out_now, out_base, repeats)
             print(comparison_line(name, now, then), flush=True)
             same = _same_gains(work / "out-now", work / "out-base")
             print(f"    same gains as the baseline (to 1e-9 relative): {same}")
@@ -417,6 +390,8 @@ def _same_gains(a: Path, b: Path) -> bool:
 
 
 def main() -> None:
+    from baseline import add_options
+
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true", help="skip case (c)")
     parser.add_argument("--keep", type=Path, help="keep the logs and reports in this folder")
@@ -426,14 +401,7 @@ def main() -> None:
         metavar="SEEDS",
         help="instead: coverage and σ studies over SEEDS noise seeds",
     )
-    parser.add_argument(
-        "--baseline-ref",
-        nargs="?",
-        const="c03ea6b",
-        metavar="REF",
-        help="instead: whole commands of this tree beside REF's (default c03ea6b)",
-    )
-    parser.add_argument("--repeats", type=int, default=1, help="--baseline-ref: runs of each")
+    add_options(parser, "whole commands of this tree")
     parser.add_argument("--child", nargs="+", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
@@ -483,20 +451,8 @@ def main() -> None:
         )
         return res
 
-    if (SHARED / "pos_read_data.csv").is_file():
-        from drivegain.identify.convert import convert_csv
-
-        real = work / "tx40-real.mcap"
-        if not real.exists():
-            convert_csv(
-                SHARED / "pos_read_data.csv",
-                SHARED / "curr_data.csv",
-                5000.0,
-                robot,
-                motor_side=True,
-                torque=True,
-                out=real,
-            )
+    real = _real_log(work, robot)
+    if real is not None:
         report(
             "(a) real TX-40, 5 kHz, 9 s",
             45_000,

@@ -23,6 +23,7 @@ from mcap.reader import SeekingReader
 from mcap.records import Attachment, Channel, Footer, Metadata
 
 from drivegain.errors import DataError
+from drivegain.fileio import reading
 from drivegain.formats.jointstates import BATCH, JointStateParser
 from drivegain.formats.log import (
     EVENTS,
@@ -163,14 +164,8 @@ def read_run(path: str | Path, n_joints: int | None = None) -> RunLog:
         references.
     """
     p = Path(path)
-    try:
+    with reading(p, error=DataError, expected="an MCAP file"):
         fh = open(p, "rb")
-    except FileNotFoundError:
-        raise DataError("file not found", file=p) from None
-    except IsADirectoryError:
-        raise DataError("is a directory, expected an MCAP file", file=p) from None
-    except OSError as exc:
-        raise DataError(f"cannot open: {exc.strerror}", file=p) from None
     with fh:
         size = os.fstat(fh.fileno()).st_size
         if size == 0:

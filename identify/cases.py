@@ -295,10 +295,28 @@ def predictions(
     return out
 
 
-def torque_quality(
-    pairs: Sequence[tuple[np.ndarray, np.ndarray]],
-) -> tuple[np.ndarray, np.ndarray]:
-    """Per-joint fit quality of measured against computed torques, all designs together.
+@dataclass(frozen=True)
+class PredictionQuality:
+    """How computed torques match measured ones, all designs together.
+
+    Attributes
+    ----------
+    r2, joint_relative
+        Per joint: R² (NaN for a joint whose torque is constant) and ‖ρ_j‖/‖Y_j‖, (n,) each.
+    residual_norm
+        ‖ρ‖, N·m, over every sample and joint.
+    relative_error
+        ‖ρ‖/‖Y‖.
+    """
+
+    r2: np.ndarray
+    joint_relative: np.ndarray
+    residual_norm: float
+    relative_error: float
+
+
+def prediction_quality(pairs: Sequence[tuple[np.ndarray, np.ndarray]]) -> PredictionQuality:
+    """Fit quality of measured against computed torques, all designs together.
 
     Parameters
     ----------
@@ -307,22 +325,27 @@ def torque_quality(
 
     Returns
     -------
-    r2, relative
-        Per joint: R² (NaN for a joint whose torque is constant) and ‖ρ_j‖/‖Y_j‖, (n,) each.
+    PredictionQuality
+        Per joint and overall.
     """
     y = np.concatenate([p[0] for p in pairs])
-    yh = np.concatenate([p[1] for p in pairs])
-    res = y - yh
+    res = y - np.concatenate([p[1] for p in pairs])
     ss_res = np.sum(res**2, axis=0)
     ss_tot = np.sum((y - y.mean(axis=0)) ** 2, axis=0)
     with np.errstate(divide="ignore", invalid="ignore"):
         r2 = np.where(ss_tot > 0, 1.0 - ss_res / ss_tot, np.nan)
         rel = np.sqrt(ss_res / np.sum(y**2, axis=0))
-    return r2, rel
+    return PredictionQuality(
+        r2=r2,
+        joint_relative=rel,
+        residual_norm=float(np.linalg.norm(res)),
+        relative_error=float(np.linalg.norm(res) / np.linalg.norm(y)),
+    )
 
 
 def _joint_quality(
     designs: Sequence[Design], gains: np.ndarray, chi: np.ndarray, payloads: Sequence[np.ndarray]
 ) -> tuple[np.ndarray, np.ndarray]:
     """R² and relative residual norm per joint of a fit on ``designs``."""
-    return torque_quality(predictions(designs, gains, chi, payloads))
+    quality = prediction_quality(predictions(designs, gains, chi, payloads))
+    return quality.r2, quality.joint_relative

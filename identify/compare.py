@@ -34,6 +34,7 @@ from drivegain.identify.estimate import ls_from_factor, r_factor, tls_from_facto
 from drivegain.identify.gains import (
     DEFAULT_ALPHA_GRID,
     Estimator,
+    GainIdentification,
     estimate_gains,
     identify_gains,
 )
@@ -155,13 +156,11 @@ def wtls_gains(a: Design, b: Design, payload: Payload, apriori: np.ndarray) -> G
     """
     res = identify_gains(a, b, payload, np.asarray(apriori, dtype=float))
     assert res.fit is not None  # the paper's estimator always has its WTLS fit
-    coupled = not np.allclose(a.kt, np.eye(a.n))
-    return GainEstimate(
-        method="IDIM-WTLS",
-        gains=res.gains,
-        std=res.std,
-        coupled=coupled,
-        details={
+    return _estimate(
+        "IDIM-WTLS",
+        a,
+        res,
+        {
             "alpha": res.fit.alpha,
             # 1.0 when α ended at an end of the searched grid (the criterion chose nothing).
             "alpha_at_edge": float(
@@ -171,7 +170,6 @@ def wtls_gains(a: Design, b: Design, payload: Payload, apriori: np.ndarray) -> G
             "sigma_iterations": float(res.fit.iterations),
             "block": float(res.block),
         },
-        gain_cov=_gain_block(res.covariance, a.nb, a.n),
     )
 
 
@@ -185,24 +183,33 @@ def ours_gains(a: Design, b: Design, payload: Payload, apriori: np.ndarray) -> G
     """
     res = estimate_gains(a, b, payload, np.asarray(apriori, dtype=float), estimator=Estimator.ML)
     assert res.ml is not None and res.eiv is not None  # the ML branch always sets both
-    coupled = not np.allclose(a.kt, np.eye(a.n))
-    return GainEstimate(
-        method="ML",
-        gains=res.gains,
-        std=res.std,
-        coupled=coupled,
-        details={
+    return _estimate(
+        "ML",
+        a,
+        res,
+        {
             "lag": float(res.ml.lag),
             "rounds": float(res.ml.iterations),
             "eiv_statistic": res.eiv.statistic,
             "eiv_p": res.eiv.p_value,
         },
-        gain_cov=_gain_block(res.covariance, a.nb, a.n),
     )
 
 
-def _gain_block(cov: np.ndarray, nb: int, n: int) -> np.ndarray:
-    return np.asarray(cov[nb : nb + n, nb : nb + n])
+def _estimate(
+    method: str, a: Design, res: GainIdentification, details: dict[str, float]
+) -> GainEstimate:
+    """The :class:`GainEstimate` of an estimator of :mod:`drivegain.identify.gains`: its gains,
+    standard deviations and the gains' block of its covariance."""
+    nb, n = a.nb, a.n
+    return GainEstimate(
+        method=method,
+        gains=res.gains,
+        std=res.std,
+        coupled=not np.allclose(a.kt, np.eye(n)),
+        details=details,
+        gain_cov=np.asarray(res.covariance[nb : nb + n, nb : nb + n]),
+    )
 
 
 def tls_gains(a: Design, b: Design, payload: Payload, *, alpha: float = 1.0) -> GainEstimate:
@@ -450,3 +457,48 @@ def coverage(
     e = np.asarray(estimates, dtype=float)
     s = np.asarray(stds, dtype=float)
     return np.asarray(np.mean(np.abs(e - np.asarray(truth)[None, :]) <= k * s, axis=0))
+
+
+@dataclass(frozen=True)
+class SeedSpread:
+    """Gains identified from many noise seeds against the true ones (a simulation study).
+
+    Attributes
+    ----------
+    errors
+        Relative errors ĝ/g − 1, (seeds, n).
+    z
+        Standardised errors (ĝ − g)/σ̂, (seeds, n): about N(0, 1) when σ̂ is honest.
+    """
+
+    errors: np.ndarray
+    z: np.ndarray
+
+    @classmethod
+    def of(
+        cls, gains: Sequence[np.ndarray], stds: Sequence[np.ndarray], truth: np.ndarray
+    ) -> SeedSpread:
+        """From the gains (N·m/A) and their standard deviations, one (n,) array per seed, and
+        the true gains, (n,)."""
+        g = np.asarray(gains, dtype=float)
+        return cls(errors=g / truth - 1.0, z=(g - truth) / np.asarray(stds, dtype=float))
+
+    @property
+    def inside(self) -> np.ndarray:
+        """Whether ±2σ̂ holds the truth, (seeds, n)."""
+        return np.asarray(np.abs(self.z) < 2.0)
+
+    def describe(self) -> list[str]:
+        """Two lines: the largest error and the coverage of the truth by ±2σ̂; the mean and
+        spread of z, per joint."""
+        inside = self.inside
+        return [
+            f"max |gain error| {100 * np.abs(self.errors).max():.3f} %; truth within 2σ "
+            f"{inside.mean():.1%} of {inside.size} (per joint "
+            + ", ".join(f"{v:.0%}" for v in inside.mean(axis=0))
+            + ")",
+            "z = (ĝ−g)/σ̂: mean per joint "
+            + ", ".join(f"{v:+.2f}" for v in self.z.mean(axis=0))
+            + "; standard deviation per joint "
+            + ", ".join(f"{v:.2f}" for v in self.z.std(axis=0)),
+        ]

@@ -33,8 +33,8 @@ from drivegain.config.robot import Robot
 from drivegain.dynamics.base import BaseParameters
 from drivegain.dynamics.params import N_INERTIAL, N_PER_JOINT, inertial_slice, n_standard
 from drivegain.errors import IdentificationError, InputError
-from drivegain.identify.cases import PayloadEstimate, predictions
-from drivegain.identify.crossval import prediction_quality, split_runs
+from drivegain.identify.cases import PayloadEstimate, prediction_quality, predictions
+from drivegain.identify.crossval import split_runs
 from drivegain.identify.design import Design, stacked_factor
 
 #: Gain handling of the consistent fit: keep the given/identified gains, or solve them jointly

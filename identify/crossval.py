@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from drivegain.errors import InputError
-from drivegain.identify.cases import fit_case, predictions, torque_quality
+from drivegain.identify.cases import fit_case, prediction_quality, predictions
 from drivegain.identify.design import Design
 
 #: Fraction of each run held out (its end) for cross-validation.
@@ -40,40 +40,6 @@ class CrossValidation:
     joint_relative: np.ndarray
     relative_error: float
     train_relative_error: float
-
-
-@dataclass(frozen=True)
-class PredictionQuality:
-    """How computed torques match measured ones, all designs together.
-
-    Attributes
-    ----------
-    r2, joint_relative
-        Per joint: R² and ‖ρ_j‖/‖Y_j‖ (:func:`~drivegain.identify.cases.torque_quality`), (n,).
-    residual_norm
-        ‖ρ‖, N·m, over every sample and joint.
-    relative_error
-        ‖ρ‖/‖Y‖.
-    """
-
-    r2: np.ndarray
-    joint_relative: np.ndarray
-    residual_norm: float
-    relative_error: float
-
-
-def prediction_quality(pairs: Sequence[tuple[np.ndarray, np.ndarray]]) -> PredictionQuality:
-    """Quality of (measured, computed) torque pairs, N·m, as
-    :func:`~drivegain.identify.cases.predictions` returns them."""
-    r2, rel = torque_quality(pairs)
-    y = np.concatenate([p[0] for p in pairs])
-    res = y - np.concatenate([p[1] for p in pairs])
-    return PredictionQuality(
-        r2=r2,
-        joint_relative=rel,
-        residual_norm=float(np.linalg.norm(res)),
-        relative_error=float(np.linalg.norm(res) / np.linalg.norm(y)),
-    )
 
 
 def split_runs(designs: Sequence[Design], fraction: float) -> tuple[list[Design], list[Design]]:

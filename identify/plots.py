@@ -26,6 +26,7 @@ import numpy as np
 from drivegain.identify.procedure import ProcedureResult
 
 if TYPE_CHECKING:
+    from matplotlib.axes import Axes
     from matplotlib.figure import Figure
 
 #: Most points drawn per curve (longer series are thinned for size, not for content).
@@ -178,15 +179,13 @@ def draw_alpha(curve: np.ndarray, chosen: float, path: Path) -> None:
     fig, ax = plt.subplots(figsize=(7, 4), layout="constrained")
     ax.semilogx(a, e, "o-", ms=3)
     ax.axvline(chosen, color="k", ls=":", label=f"chosen α = {chosen:.3g}")
-    ax.set_xlabel("α: weight of the measured-current columns against the model columns")
-    ax.set_ylabel("weighted relative error norm")
-    ax.set_title(
+    _label(
+        ax,
+        "α: weight of the measured-current columns against the model columns",
+        "weighted relative error norm",
         "IDIM-WTLS: α is chosen where the weighted error is smallest;\n"
         "a flat curve means the gains hardly depend on α",
-        fontsize=10,
     )
-    ax.grid(alpha=0.3, which="both")
-    ax.legend()
     ax.ticklabel_format(axis="y", useOffset=False, style="plain")
     _save(fig, path)
 
@@ -213,16 +212,23 @@ def draw_singular_values(s: np.ndarray, gap: float, path: Path) -> None:
         textcoords="axes fraction",
         arrowprops={"arrowstyle": "->", "lw": 0.8},
     )
-    ax.set_xlabel("index")
-    ax.set_ylabel("singular value")
-    ax.set_title(
+    _label(
+        ax,
+        "index",
+        "singular value",
         "WTLS matrix: the gains come from the smallest singular value's vector;\n"
         "a clear gap to the next one means that vector, and the gains, are well determined",
-        fontsize=10,
     )
+    _save(fig, path)
+
+
+def _label(ax: Axes, xlabel: str, ylabel: str, title: str) -> None:
+    """Axis labels, title, grid and legend of the one-panel figures (α curve, singular values)."""
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title, fontsize=10)
     ax.grid(alpha=0.3, which="both")
     ax.legend()
-    _save(fig, path)
 
 
 #: A figure to draw: a drawing function of this module and its (small, picklable) arguments.
@@ -240,7 +246,7 @@ def plot_jobs(
         sl = _thin(t.size)  # only the drawn points travel to a worker; RMS from every sample
         rms = np.sqrt(np.mean((y - yh) ** 2, axis=0)) if t.size else np.full(y.shape[1], np.nan)
         args = (label, t[sl], y[sl], yh[sl], list(joint_names), result.final.name, folder / name)
-        jobs.append((_draw_torques, (*args, rms)))
+        jobs.append((plot_torques, (*args, rms)))
         out[f"torques_{label}"] = name
     w = result.wtls
     if w is not None and w.fit is not None and w.alpha_curve:
@@ -266,19 +272,6 @@ def write_plots(result: ProcedureResult, joint_names: list[str], folder: Path) -
     for fn, args in jobs:
         fn(*args)
     return out
-
-
-def _draw_torques(
-    label: str,
-    t: np.ndarray,
-    measured: np.ndarray,
-    computed: np.ndarray,
-    joint_names: list[str],
-    case: str,
-    path: Path,
-    rms: np.ndarray,
-) -> None:
-    plot_torques(label, t, measured, computed, joint_names, case, path, rms=rms)
 
 
 class _Worker:
