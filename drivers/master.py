@@ -365,18 +365,23 @@ class Master:
         TrajectoryError
             ``target`` is not finite or outside the encoder range.
         """
-        self._require_booted()
-        if not self._streaming:
-            raise DriveError("the drives are not enabled (call enable() first)")
-        self.check()
+        counts = self._streaming_targets(target)
         ex = self._exchanger
-        counts = ex.target_counts(target)
         if ex.in_flight is not None:
             self._drop_in_flight("a same-cycle exchange")
         ex.targets = counts
         sample = ex.exchange(ex.targets)
         ex.check_sample(sample)
         return sample
+
+    def _streaming_targets(self, target: np.ndarray) -> np.ndarray:
+        """Encoder counts of ``target`` once the drives are streaming and nothing is pending
+        (the checks both cycle calls make before sending anything)."""
+        self._require_booted()
+        if not self._streaming:
+            raise DriveError("the drives are not enabled (call enable() first)")
+        self.check()
+        return self._exchanger.target_counts(target)
 
     def cycle_pipelined(self, target: np.ndarray) -> PipelinedCycle:
         """One pipelined SYNC cycle: RPDOs (target 0x607A + controlword) and SYNC of cycle k,
@@ -408,12 +413,8 @@ class Master:
         TrajectoryError
             ``target`` is not finite or outside the encoder range (nothing sent).
         """
-        self._require_booted()
-        if not self._streaming:
-            raise DriveError("the drives are not enabled (call enable() first)")
-        self.check()
+        counts = self._streaming_targets(target)
         ex = self._exchanger
-        counts = ex.target_counts(target)
         previous = ex.in_flight
         sample: CycleSample | None = None
         if previous is not None and not self.layout.tagged:

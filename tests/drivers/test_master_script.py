@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 import struct
 import time
+from pathlib import Path
 
 import pytest
 
@@ -42,6 +43,23 @@ def map_pdo(f, comm: int, mapping: int, cob: int, entries: tuple[int, ...]) -> l
 
 #: 0x1016 sub 1 for the default master heartbeat: node 127 (0x7F) << 16 | 300 ms (3 periods).
 DEFAULT_CONSUMER = bytes.fromhex("2C 01 7F 00")
+
+
+#: TPDO mappings of a drive without the SYNC echo: position, torque demand, statusword; currents,
+#: error register, mode.
+NO_ECHO_TPDOS = (
+    (0x60640020, 0x60740010, 0x60410010),
+    (0x60780010, 0x60770010, 0x10010008, 0x60610008),
+)
+
+
+def no_echo_eds(tmp_path) -> Path:
+    """The shipped drive EDS without object 0x2010 (the SYNC echo), written in ``tmp_path``."""
+    text = ob.default_eds().read_text()
+    eds = tmp_path / "no-echo.eds"
+    start = text.index("[2010]")
+    eds.write_text(text[:start] + text[text.index("[603F]", start) :])
+    return eds
 
 
 def boot_script(
@@ -292,12 +310,8 @@ def test_drives_without_the_sync_echo_get_a_standard_mapping(
     """A drive EDS without 0x2010 (any drive of the market): only standard objects are mapped
     and the TPDOs of a cycle are those received between its SYNC and the deadline."""
     f = frames
-    text = ob.default_eds().read_text()
-    eds = tmp_path / "no-echo.eds"
-    start = text.index("[2010]")
-    eds.write_text(text[:start] + text[text.index("[603F]", start) :])
-    plain1 = (0x60640020, 0x60740010, 0x60410010)  # position, torque demand, statusword
-    plain2 = (0x60780010, 0x60770010, 0x10010008, 0x60610008)  # currents, error reg, mode
+    eds = no_echo_eds(tmp_path)
+    plain1, plain2 = NO_ECHO_TPDOS
     script = [
         *boot_script(f, plain1, plain2),
         *enable_script(f),

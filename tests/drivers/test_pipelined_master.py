@@ -198,12 +198,8 @@ def test_without_the_sync_echo_a_cycle_closes_before_the_next_sync(
     comes back one call later; an answer that has not come by then is missing, and the next SYNC
     is not sent (it would make the late answer look like its own)."""
     f = frames
-    text = ob.default_eds().read_text()
-    eds = tmp_path / "no-echo.eds"
-    start = text.index("[2010]")
-    eds.write_text(text[:start] + text[text.index("[603F]", start) :])
-    plain1 = (0x60640020, 0x60740010, 0x60410010)  # position, torque demand, statusword
-    plain2 = (0x60780010, 0x60770010, 0x10010008, 0x60610008)  # currents, error reg, mode
+    eds = S.no_echo_eds(tmp_path)
+    plain1, plain2 = S.NO_ECHO_TPDOS
     q = targets(3)
     c = [counts_of(x) for x in q]
 
