@@ -18,6 +18,7 @@ from __future__ import annotations
 import heapq
 import itertools
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable
@@ -34,6 +35,27 @@ logger = logging.getLogger(__name__)
 
 #: Realtime clock: the integrator thread wakes up about this often (s).
 INTEGRATOR_WAKE_S = 0.001
+#: Realtime clock: the most the physics may trail the wall clock, s. A machine too slow for
+#: realtime physics (an emulated guest, a saturated host) would otherwise integrate an ever
+#: longer backlog under the physics lock, answering no SDO, SYNC or heartbeat meanwhile; beyond
+#: this bound the integrator drops the time it cannot catch up (the simulated robot runs in slow
+#: motion), as a real drive's control loop skips the cycles it overran and keeps answering.
+MAX_LAG_S = 0.01
+#: Realtime clock: the most simulated time integrated per hold of the physics lock while behind,
+#: s, so that the bus threads get the lock in between.
+CATCH_UP_CHUNK_S = 0.002
+#: Realtime clock: shortest pause between two holds of the physics lock, s (hands the lock and
+#: the interpreter to the bus threads even when the physics is behind).
+MIN_PAUSE_S = 0.0005
+#: Realtime clock: the integrator pauses at least this many times the CPU time its last hold of
+#: the lock took, so that it uses at most 1 / (1 + this) of the interpreter. Where the machine
+#: keeps pace (integration costs a tenth of the time it covers) this never binds; where it does
+#: not, the SYNC handling, which integrates what it needs itself, gets the interpreter first.
+DUTY_PAUSE_FACTOR = 3.0
+#: Longest pause the duty limit imposes, s.
+MAX_DUTY_PAUSE_S = 0.05
+#: Realtime clock: at most one warning about dropped time per this interval, s.
+DROP_LOG_INTERVAL_S = 5.0
 
 
 class WallTimer:
@@ -79,14 +101,44 @@ class WallTimer:
 class Integrator:
     """Realtime clock: integrates the physics step by step as wall time passes, like a drive's
     own control loop, when no SYNC has done so ahead (see :meth:`SimulatedCell._sync`). Sleeping
-    between steps hands the GIL to the bus threads at once."""
+    between steps hands the GIL to the bus threads at once.
 
-    def __init__(self, cell: SimulatedCell):
+    The physics may trail the wall clock by :data:`MAX_LAG_S` at most: when it falls further
+    behind (the machine cannot integrate as fast as time passes), the excess is dropped, by
+    moving the cell's time origin (``cell._t0``, which the SYNC handling reads too) forward,
+    counted in :attr:`drops` and :attr:`dropped_steps`, and logged. The simulated robot then
+    moves in slow motion against the wall clock, consistently (setpoints, control loops and the
+    SYNC instants all count the same simulated time), and the drives keep answering.
+
+    Parameters
+    ----------
+    cell
+        The cell whose physics to integrate.
+    clock
+        The wall clock, s (``time.monotonic``; a fake one in tests).
+    """
+
+    def __init__(self, cell: SimulatedCell, clock: Callable[[], float] = time.monotonic):
         self._cell = cell
+        self._clock = clock
         self._stopped = threading.Event()
         self._thread = threading.Thread(
             target=self._run, name="drivegain-sim-integrator", daemon=True
         )
+        dt = cell.dt
+        self.max_lag_steps = max(1, round(MAX_LAG_S / dt))
+        self.chunk_steps = max(1, round(CATCH_UP_CHUNK_S / dt))
+        #: How often, and how many internal steps in all, the physics dropped time.
+        self.drops = 0
+        self.dropped_steps = 0
+        self._logged_at = -math.inf
+        self._logged_steps = 0
+        self._logged_drops = 0
+
+    @property
+    def dropped_s(self) -> float:
+        """Simulated time dropped so far, s."""
+        return self.dropped_steps * self._cell.dt
 
     def start(self) -> None:
         self._thread.start()
@@ -95,6 +147,61 @@ class Integrator:
         self._stopped.set()
         if self._thread.is_alive():
             self._thread.join(2.0)
+        if self.drops:
+            logger.warning(
+                "simulated drives: the physics fell behind the wall clock %d times; %.3f s of "
+                "simulated time dropped in all (the machine was too slow for realtime)",
+                self.drops,
+                self.dropped_s,
+            )
+
+    def lag_steps(self) -> int:
+        """Internal steps the physics trails the wall clock by (caller holds the physics lock)."""
+        cell = self._cell
+        # (a step's worth of round-off after time was dropped: _t0 is no multiple of dt)
+        return math.floor((self._clock() - cell._t0) / cell.dt + 1e-6) - cell.physics.step_index
+
+    def bound_lag(self) -> None:
+        """Drop the lag beyond :data:`MAX_LAG_S` while a motor is powered (caller holds the
+        physics lock; nothing powered, integration is free and nothing is dropped)."""
+        if not self._cell.physics.any_powered:
+            return
+        lag = self.lag_steps()
+        if lag > self.max_lag_steps:
+            self._drop(lag - self.max_lag_steps)
+
+    def step(self) -> None:
+        """Integrate towards the present (caller holds the physics lock): all of it when nothing
+        is powered (free), else at most :data:`CATCH_UP_CHUNK_S`, after dropping the lag beyond
+        :data:`MAX_LAG_S`."""
+        self.bound_lag()
+        lag = self.lag_steps()
+        if lag <= 0:
+            return
+        ph = self._cell.physics
+        if ph.any_powered:
+            lag = min(lag, self.chunk_steps)
+        ph.advance(lag)
+
+    def _drop(self, steps: int) -> None:
+        cell = self._cell
+        cell._t0 += steps * cell.dt
+        self.drops += 1
+        self.dropped_steps += steps
+        now = self._clock()
+        if now - self._logged_at >= DROP_LOG_INTERVAL_S:
+            logger.warning(
+                "simulated drives: the physics fell %.0f ms behind the wall clock; dropped "
+                "%.3f s of simulated time in %d drops since the last report (%.3f s in all), "
+                "the drives keep answering",
+                (steps + self.max_lag_steps) * cell.dt * 1e3,
+                (self.dropped_steps - self._logged_steps) * cell.dt,
+                self.drops - self._logged_drops,
+                self.dropped_s,
+            )
+            self._logged_at = now
+            self._logged_steps = self.dropped_steps
+            self._logged_drops = self.drops
 
     def _run(self) -> None:
         cell = self._cell
@@ -102,13 +209,16 @@ class Integrator:
         # Wake-ups cost CPU: integrate about a millisecond at a time.
         batch = max(1, round(INTEGRATOR_WAKE_S / dt))
         while not self._stopped.is_set():
-            cell.guard(cell.catch_up)
+            cpu = time.thread_time()
+            cell.guard(self.step)
+            cpu = time.thread_time() - cpu
             # Nothing powered: integration is free, wake up rarely.
             idle = not cell.physics.any_powered
             due = cell._t0 + (cell.physics.step_index + batch) * dt
-            pause = 0.005 if idle else due - time.monotonic()
-            if pause > 0:
-                self._stopped.wait(pause)
+            pause = 0.005 if idle else due - self._clock()
+            # Always pause a little: behind, the next chunk waits for the bus threads' turn.
+            floor = max(MIN_PAUSE_S, min(DUTY_PAUSE_FACTOR * cpu, MAX_DUTY_PAUSE_S))
+            self._stopped.wait(max(pause, floor))
 
 
 class CellClock:
