@@ -38,8 +38,8 @@ INTEGRATOR_WAKE_S = 0.001
 #: Realtime clock: the most the physics may trail the wall clock, s. A machine too slow for
 #: realtime physics (an emulated guest, a saturated host) would otherwise integrate an ever
 #: longer backlog under the physics lock, answering no SDO, SYNC or heartbeat meanwhile; beyond
-#: this bound the integrator drops the time it cannot catch up (the simulated robot runs in slow
-#: motion), as a real drive's control loop skips the cycles it overran and keeps answering.
+#: this bound the integrator drops the time it cannot catch up (the simulated motion loses it), as
+#: a real drive's control loop skips the cycles it overran and keeps answering.
 MAX_LAG_S = 0.01
 #: Realtime clock: the most simulated time integrated per hold of the physics lock while behind,
 #: s, so that the bus threads get the lock in between.
@@ -106,9 +106,10 @@ class Integrator:
     The physics may trail the wall clock by :data:`MAX_LAG_S` at most: when it falls further
     behind (the machine cannot integrate as fast as time passes), the excess is dropped, by
     moving the cell's time origin (``cell._t0``, which the SYNC handling reads too) forward,
-    counted in :attr:`drops` and :attr:`dropped_steps`, and logged. The simulated robot then
-    moves in slow motion against the wall clock, consistently (setpoints, control loops and the
-    SYNC instants all count the same simulated time), and the drives keep answering.
+    counted in :attr:`drops` and :attr:`dropped_steps`, and logged. Setpoints, control loops
+    and SYNC instants all count the same simulated time, and the drives keep answering; but the
+    master's targets still come once per wall-clock period, so a trajectory streamed meanwhile
+    is covered in less simulated time (faster, with larger following errors) than planned.
 
     Parameters
     ----------
