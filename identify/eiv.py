@@ -110,13 +110,10 @@ def eiv_test(
     theta_ml = np.concatenate([fit.chi, fit.gains, fit.payload_unknown])
     whiten = np.linalg.inv(np.linalg.cholesky(fit.noise))
     gains = slice(nb, nb + n)
-    bread_ml = (
-        fit.hessian if fit.hessian is not None else _ml_hessian(theta_ml, runs, kt_inv, whiten)
-    )
     # Only the gains' rows of each sample's first-order influence H⁻¹ψ_k enter the test: the
     # per-sample influences are formed block by block, n columns each, never held whole.
     proj_ls = np.linalg.pinv(ls.hessian, hermitian=True)[:, gains]
-    proj_ml = np.linalg.pinv(bread_ml, hermitian=True)[:, gains]
+    proj_ml = np.linalg.pinv(fit.hessian, hermitian=True)[:, gains]
     w2 = ls.weights**2
     diff_sum, ls_sum = LongRunSum(n, fit.lag), LongRunSum(n, fit.lag)
     for run in runs:
@@ -148,15 +145,3 @@ def eiv_test(
         difference_std=np.sqrt(np.clip(np.diag(cov_d), 0.0, None)),
         lag=fit.lag,
     )
-
-
-def _ml_hessian(
-    theta: np.ndarray, runs: Sequence[RunArrays], kt_inv: np.ndarray, whiten: np.ndarray
-) -> np.ndarray:
-    """Σ_k J̃_kᵀ J̃_k at θ (for a fit made without it), built in row blocks."""
-    bread = np.zeros((theta.size, theta.size))
-    for run in runs:
-        for sl in chunks(run.samples):
-            flat = whitened_block(theta, run.rows(sl), kt_inv, whiten)[0].reshape(-1, theta.size)
-            bread += flat.T @ flat
-    return bread

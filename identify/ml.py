@@ -184,7 +184,7 @@ class MLFit:
     converged: bool
     start_gains: np.ndarray
     rows: int
-    hessian: np.ndarray | None = None
+    hessian: np.ndarray
 
     @property
     def std_all(self) -> np.ndarray:
@@ -228,12 +228,16 @@ def predict(theta: np.ndarray, run: RunArrays, kt_inv: np.ndarray) -> tuple[np.n
     return u / g[None, :], u
 
 
-def jacobian(theta: np.ndarray, run: RunArrays, kt_inv: np.ndarray) -> np.ndarray:
-    """∂v̂/∂θ per sample, (N, n, P), θ = (χ, g, χ_uL)."""
+def jacobian(
+    theta: np.ndarray, run: RunArrays, kt_inv: np.ndarray, v_hat: np.ndarray | None = None
+) -> np.ndarray:
+    """∂v̂/∂θ per sample, (N, n, P), θ = (χ, g, χ_uL); ``v_hat``: :func:`predict`'s currents
+    at θ when the caller has them (computed here otherwise)."""
     nb, n = run.base_idx.size, run.v.shape[1]
     g = theta[nb : nb + n]
     m = kt_inv / g[:, None]  # diag(1/g) K⁻¹
-    v_hat, _ = predict(theta, run, kt_inv)
+    if v_hat is None:
+        v_hat, _ = predict(theta, run, kt_inv)
     jac = np.zeros((run.samples, n, theta.size))
     jac[:, :, :nb] = m @ run.w  # batched over samples
     idx = np.arange(n)
@@ -325,12 +329,6 @@ def least_squares(runs: Sequence[RunArrays], kt: np.ndarray) -> LinearStart:
     return LinearStart(theta=theta, weights=w, hessian=np.einsum("j,jpq->pq", w**2, gram))
 
 
-def linear_start(runs: Sequence[RunArrays], kt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """θ and the row weights (1/(N·m)) of :func:`least_squares`."""
-    ls = least_squares(runs, kt)
-    return ls.theta, ls.weights
-
-
 def ml_fit(
     a: Design,
     b: Design,
@@ -350,7 +348,7 @@ def ml_fit(
         The payload of run b; its ``known`` parameters (at least one, e.g. the mass) set the
         scale of the solution.
     start
-        Starting (χ, g, χ_uL); default the linear least squares of :func:`linear_start`.
+        Starting (χ, g, χ_uL); default the linear least squares of :func:`least_squares`.
     step
         Progress callback (one line per phase).
     runs
@@ -382,7 +380,7 @@ def ml_fit(
     kt_inv = np.linalg.inv(kt)
     nb, n = a.nb, a.n
     names = [p for p, k in zip(PAYLOAD_PARAMS, known, strict=True) if not k]
-    theta = linear_start(runs, kt)[0] if start is None else np.asarray(start, float).copy()
+    theta = least_squares(runs, kt).theta if start is None else np.asarray(start, float).copy()
     start_gains = theta[nb : nb + n].copy()
     if np.any(theta[nb : nb + n] == 0.0) or not np.all(np.isfinite(theta)):
         raise IdentificationError(
@@ -445,12 +443,7 @@ def ml_fit(
         step("maximum likelihood: HAC covariance")
     # ``noise`` is already Σ̂ of the final θ (the loop's last update).
     whiten = np.linalg.inv(np.linalg.cholesky(noise))
-    white = [
-        np.concatenate(
-            [_whitened_residuals(theta, r.rows(sl), kt_inv, whiten) for sl in chunks(r.samples)]
-        )
-        for r in runs
-    ]
+    white = [_whitened_residuals(theta, r, kt_inv, whiten) for r in runs]  # predict chunks
     lag = bartlett_lag(white)
     rho = lag1_autocorrelation(white)
     del white
@@ -520,8 +513,9 @@ def whitened_block(
 
     Meant for row blocks (:func:`chunks`): the Jacobian is the largest array of the fit.
     """
-    jw = whiten @ jacobian(theta, run, kt_inv)
-    return jw, _whitened_residuals(theta, run, kt_inv, whiten)
+    v_hat, _ = predict(theta, run, kt_inv)
+    jw = whiten @ jacobian(theta, run, kt_inv, v_hat)
+    return jw, np.asarray((run.v - v_hat) @ whiten.T)
 
 
 def scores(jw: np.ndarray, ew: np.ndarray) -> np.ndarray:
