@@ -286,9 +286,7 @@ class RobotPhysics:
         self._to = xm.copy()
         self._t_latch = np.zeros(self.n)
         self._span = np.full(self.n, 1.0)
-        self._slope = (self._to - self._from) / self._span  # setpoint speed while interpolating
-        self._diff = self._to - self._from
-        self._uniform = True  # every motor latched at one instant over one span (scalar path)
+        self._interpolation_changed()
         self._qs_v = np.zeros(self.n)
         self._qs_pos = xm.copy()
         self._qs_decel = np.full(self.n, np.inf)
@@ -375,8 +373,7 @@ class RobotPhysics:
         meas = self._measured()[motor]
         if mode == MotorMode.TRACK:
             self._from[motor] = self._to[motor] = meas
-            self._slope = (self._to - self._from) / self._span
-            self._diff = self._to - self._from
+            self._interpolation_changed()
             self._integral[motor] = 0.0
             if old == MotorMode.BRAKED:
                 self._prev_meas[motor] = meas
@@ -417,12 +414,18 @@ class RobotPhysics:
         self._to = np.where(mask, targets, self._to)
         self._t_latch = np.where(mask, now, self._t_latch)
         self._span = np.where(mask, period_s, self._span)
-        self._slope = (self._to - self._from) / self._span
+        self._interpolation_changed()
+        self._pending = None
+
+    def _interpolation_changed(self) -> None:
+        """Derive what :meth:`_setpoint_at` reads from ``_from``, ``_to``, ``_t_latch`` and
+        ``_span``, after any of them changed."""
         self._diff = self._to - self._from
+        self._slope = self._diff / self._span  # setpoint speed while interpolating
+        # every motor latched at one instant over one span: the scalar path
         self._uniform = bool(
             (self._t_latch == self._t_latch[0]).all() and (self._span == self._span[0]).all()
         )
-        self._pending = None
 
     # --- evaluation and integration ---------------------------------------------------------
     def _setpoint_at(self, t: float) -> tuple[np.ndarray, np.ndarray]:
