@@ -7,7 +7,9 @@ names it, which is what the command line prints.
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
+from typing import Any
 
 
 class DrivegainError(Exception):
@@ -32,6 +34,11 @@ class InputError(DrivegainError):
         self.file = None if file is None else str(file)
         self.key = key
         super().__init__(self._format())
+
+    def __reduce__(self) -> tuple[Any, tuple[str]]:
+        # the default pickling passes only the formatted line back to __init__: file and key
+        # would be lost (and the prefix doubled) when an error comes back from a worker process
+        return functools.partial(type(self), file=self.file, key=self.key), (self.message,)
 
     def _format(self) -> str:
         where = []

@@ -247,12 +247,19 @@ def jacobian(
     return jac
 
 
-def _noise(resid: Sequence[np.ndarray]) -> np.ndarray:
+#: Residual variance taken as round-off, relative to each joint's mean square current: an error
+#: of 1e-8 of the signal is the arithmetic's (and a 1e-4 measurement's weight moves by 1e-8).
+ROUND_OFF_VARIANCE = 1e-16
+
+
+def _noise(resid: Sequence[np.ndarray], mean_square: np.ndarray) -> np.ndarray:
+    """Σ̂ of the residuals, its diagonal floored at the round-off of ``mean_square`` (each
+    joint's mean square current): with exact (noise-free) data Σ̂ stays invertible and stops
+    changing from one iteration to the next, and a real estimate is not changed."""
     e = np.vstack(resid)
     cov = e.T @ e / e.shape[0]
-    # Exact (noise-free) data: keep Σ invertible without changing a real estimate.
-    floor = 1e-12 * max(float(np.trace(cov)) / cov.shape[0], 1e-300)
-    return np.asarray(cov + floor * np.eye(cov.shape[0]))
+    floor = np.maximum(ROUND_OFF_VARIANCE * mean_square, 1e-300)
+    return np.asarray(cov + np.diag(floor))
 
 
 def ls_rows(run: RunArrays, kt: np.ndarray) -> np.ndarray:
@@ -400,7 +407,8 @@ def ml_fit(
     _check_rank(r_aug[:-1, :-1], names, nb, n)
     converged = False
     rounds = 0
-    noise = _noise(residuals(theta))
+    mean_square = np.mean(np.vstack([r.v for r in runs]) ** 2, axis=0)
+    noise = _noise(residuals(theta), mean_square)
     while rounds < MAX_ITER:
         rounds += 1
         # Coordinate descent of the profiled likelihood: one Gauss-Newton step of θ with Σ
@@ -422,7 +430,7 @@ def ml_fit(
         else:
             trial = theta  # no decrease along the step: round-off at the optimum
         theta = trial
-        new_noise = _noise(residuals(theta))
+        new_noise = _noise(residuals(theta), mean_square)
         change = float(np.max(np.abs(np.diag(new_noise) / np.diag(noise) - 1.0)))
         noise = new_noise
         if (step_sq < DECREMENT_TOL or lam <= 1e-6) and change < NOISE_TOL:

@@ -10,14 +10,13 @@ complete: a failure leaves ``--out`` untouched.
 from __future__ import annotations
 
 import argparse
-import functools
 import json
 import math
 import os
 import shutil
 import sys
 import tempfile
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,20 +24,13 @@ from typing import Any
 
 from drivegain.config.payload import Payload, load_payload
 from drivegain.config.robot import Robot, WristFriction, load_robot
-from drivegain.dynamics.model import RobotModel, build_model
+from drivegain.dynamics.model import build_model
 from drivegain.errors import IdentificationError, InputError
 from drivegain.identify import consistent_report as cr
 from drivegain.identify.blas import limited_blas_threads
 from drivegain.identify.diagnose import current_warnings, other_channel_hint
 from drivegain.identify.gains import Estimator
-from drivegain.identify.prepare import (
-    PreparedRun,
-    bases_for_forms,
-    prepare_recording,
-    stored_columns,
-    trajectory_bandwidth,
-    trajectory_period,
-)
+from drivegain.identify.loading import load_and_prepare
 from drivegain.identify.procedure import (
     GivenGains,
     Options,
@@ -46,17 +38,14 @@ from drivegain.identify.procedure import (
     ProcedureResult,
     run_procedure,
 )
-from drivegain.identify.report import FORM_MARGIN, RunInfo, markdown_report, report_json
+from drivegain.identify.report import FORM_MARGIN, markdown_report, report_json
 from drivegain.identify.runs import (
     CURRENT_CHANNELS,
-    LoadedRun,
     attached_payload,
     check_roles,
     load_gains,
-    load_run,
     read_header,
 )
-from drivegain.identify.signal import FilterSettings, default_filter
 
 # --------------------------------------------------------------------------------------------
 # Inputs
@@ -180,94 +169,6 @@ def _check_request(req: IdentifyRequest) -> None:
         raise InputError(f"must be an integer >= 1, got {req.decimate}", key="--decimate")
     if req.out.exists() and not req.out.is_dir():
         raise InputError("exists and is not a folder", file=req.out, key="--out")
-
-
-def _filter_for(run: LoadedRun, req: IdentifyRequest) -> FilterSettings:
-    bandwidth = trajectory_bandwidth(run.attachments)
-    try:
-        return default_filter(
-            run.rate_hz,
-            bandwidth,
-            cutoff_hz=req.cutoff,
-            decimate=req.decimate,
-            current_delay=req.current_delay,
-        )
-    except InputError as exc:
-        raise InputError(f"run {run.label} ({run.path}): {exc}") from None
-
-
-def _run_info(run: LoadedRun, prepared: PreparedRun) -> RunInfo:
-    st = prepared.filter
-    return RunInfo(
-        label=run.label,
-        source=str(run.path),
-        raw_samples=prepared.raw_samples,
-        samples=prepared.samples,
-        rate_hz=run.rate_hz,
-        decimated_rate_hz=prepared.rate_hz,
-        payload=run.payload.name if run.payload is not None else "none",
-        time_base=None if run.time_base is None else run.time_base.as_dict(),
-        current=run.channel,
-        filter=None
-        if st is None
-        else {
-            "cutoff_hz": st.cutoff_hz,
-            "order": st.order,
-            "decimate": st.decimate,
-            "trim": st.trim,
-            "current_delay": st.current_delay,
-        },
-        notes=list(run.notes)
-        + (
-            [
-                f"{prepared.rest_samples} samples with the robot at rest left out (and the "
-                "decimated samples whose filter window reaches them)"
-            ]
-            if prepared.rest_samples
-            else []
-        ),
-    )
-
-
-def _load_and_prepare(
-    model: RobotModel,
-    specs: Sequence[tuple[Path, str, Payload | None]],
-    req: IdentifyRequest,
-    display: _Display,
-) -> tuple[dict[WristFriction, Any], list[PreparedRun], list[RunInfo], list[dict[str, str]]]:
-    """Read and prepare the runs one after the other (a run's raw samples are dropped before
-    the next is read: for long recordings they dominate memory)."""
-    bases = bases_for_forms(model)
-    links = [pay.link for _, _, pay in specs if pay is not None]
-    columns = stored_columns(model.robot, bases, links)
-    prepared, infos, metas = [], [], []
-    for path, label, pay in specs:
-        task = display.progress.add_task(f"reading {label} run", total=None)
-        run = load_run(path, model.robot, label, pay, req.current)
-        settings = _filter_for(run, req)
-        display.progress.update(
-            task, description=f"{label}: filters, regressor, decimation", total=run.q.shape[0]
-        )
-        p = prepare_recording(
-            model,
-            columns,
-            label=run.label,
-            q=run.q,
-            current=run.current,
-            rate_hz=run.rate_hz,
-            settings=settings,
-            payload=run.payload,
-            source=str(run.path),
-            t0=run.t0,
-            progress=functools.partial(display.progress.advance, task),
-            period_s=trajectory_period(run.attachments),
-        )
-        prepared.append(p)
-        infos.append(_run_info(run, p))
-        metas.append(run.meta)
-        display.progress.remove_task(task)
-        del run
-    return bases, prepared, infos, metas
 
 
 @contextmanager
@@ -406,7 +307,10 @@ def _run_identify(req: IdentifyRequest) -> IdentifyOutcome:
             specs.append((req.loaded, "loaded", payload))
         if req.validate is not None:
             specs.append((req.validate, "validation", vpayload))
-        bases, prepared, infos, metas = _load_and_prepare(model, specs, req, display)
+        bases, loaded = load_and_prepare(model, specs, req, display.progress)
+        prepared = [x.prepared for x in loaded]
+        infos = [x.info for x in loaded]
+        metas = [x.meta for x in loaded]
         if given is None and req.loaded is None and metas[0].get("gains_hint") == "gear_ratio":
             given = GivenGains(robot.gear_ratios, None, "gear ratios (log's gains_hint)")
         by_label = {p.label: p for p in prepared}

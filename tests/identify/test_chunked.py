@@ -125,15 +125,20 @@ def test_ml_fit_and_eiv_test_do_not_depend_on_the_block_size(world, pair, monkey
         fit = ml_fit(a, b, world.payload)
         outs.append((fit, eiv_test(fit, a, b, world.payload)))
     (f1, t1), (f2, t2) = outs
-    assert f1.lag == f2.lag and f1.iterations == f2.iterations
-    np.testing.assert_allclose(f2.gains, f1.gains, rtol=RTOL)
-    np.testing.assert_allclose(f2.gain_std, f1.gain_std, rtol=RTOL)
-    np.testing.assert_allclose(
-        f2.covariance, f1.covariance, rtol=1e-7, atol=1e-9 * f1.std_all.max() ** 2
-    )
-    np.testing.assert_allclose(t2.statistic, t1.statistic, rtol=RTOL)
+    # Sums in another order differ by round-off, and the search stops when a step moves the fit
+    # by less than 1e-5 σ (ml.DECREMENT_TOL): a difference at that threshold may cost one more
+    # step. Anything the block size changed in earnest would show far above these bounds.
+    assert f1.lag == f2.lag and abs(f1.iterations - f2.iterations) <= 1
+    np.testing.assert_allclose(f2.gains, f1.gains, rtol=0, atol=1e-4 * f1.gain_std.min())
+    np.testing.assert_allclose(f2.gain_std, f1.gain_std, rtol=1e-6)
+    # each entry against its own scale √(C_ii C_jj): small off-diagonal terms carry the
+    # round-off of the large ones
+    scale = np.outer(f1.std_all, f1.std_all)
+    np.testing.assert_allclose(f2.covariance / scale, f1.covariance / scale, rtol=0, atol=1e-6)
+    # a difference of two nearly equal estimates over its own σ: the bound above, in σ units
+    np.testing.assert_allclose(t2.statistic, t1.statistic, rtol=1e-4)
     np.testing.assert_allclose(t2.ls_std, t1.ls_std, rtol=RTOL)
-    np.testing.assert_allclose(t2.difference_std, t1.difference_std, rtol=RTOL)
+    np.testing.assert_allclose(t2.difference_std, t1.difference_std, rtol=1e-6)
 
 
 def test_eiv_test_equals_its_whole_matrix_form(world, pair) -> None:

@@ -1,0 +1,330 @@
+"""Read and prepare the runs of an identification, in worker processes when they are long.
+
+Reading a log and preparing it (filters, regressor, decimation) is most of an identification's
+time for long recordings, and each run is independent of the others. When the logs together
+exceed :data:`PARALLEL_BYTES`, each run is read and prepared in a forked worker process, one per
+CPU at most; otherwise, or where forking is not safe (no ``fork``, other threads running), one
+after the other in this process. Both ways run the same function on the same data, so the
+results are identical.
+
+A worker sends its progress, then the prepared run over a pipe: the small fields pickled, the
+regressor (hundreds of MB for a 10-minute 1 kHz log) as raw bytes received straight into an
+array of this process, so it is never held twice. An error in a worker (a corrupt log) comes
+back as the same exception, file and key included; a worker that dies is reported by run.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import multiprocessing
+import os
+import threading
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from multiprocessing.connection import Connection, wait
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from drivegain.config.payload import Payload
+from drivegain.config.robot import WristFriction
+from drivegain.dynamics.model import RobotModel
+from drivegain.errors import IdentificationError, InputError
+from drivegain.identify.blas import limited_blas_threads
+from drivegain.identify.prepare import (
+    PreparedRun,
+    bases_for_forms,
+    prepare_recording,
+    stored_columns,
+    trajectory_bandwidth,
+    trajectory_period,
+)
+from drivegain.identify.report import RunInfo
+from drivegain.identify.runs import LoadedRun, load_run
+from drivegain.identify.signal import FilterSettings, default_filter
+
+if TYPE_CHECKING:
+    from rich.progress import Progress
+
+    from drivegain.identify.pipeline import IdentifyRequest
+
+__all__ = ["PARALLEL_BYTES", "Loaded", "RunSpec", "load_and_prepare"]
+
+#: Log bytes, all runs together, from which the runs are read in worker processes. Starting a
+#: worker costs little (a fork), but below this the runs take about a second in all.
+PARALLEL_BYTES = 16 * 2**20
+
+#: A run to read: its log, its label, the payload fixed to the robot during it.
+RunSpec = tuple[Path, str, Payload | None]
+
+
+@dataclass(frozen=True)
+class Loaded:
+    """One run read and prepared, with what the report says of it."""
+
+    prepared: PreparedRun
+    info: RunInfo
+    meta: dict[str, str]
+
+
+class _Steps:
+    """What reading a run tells its display: a description and a total, then advances."""
+
+    def __init__(self, describe: Callable[[str, int | None], None], advance: Callable[[int], None]):
+        self.describe = describe
+        self.advance = advance
+
+
+def load_and_prepare(
+    model: RobotModel,
+    specs: Sequence[RunSpec],
+    req: IdentifyRequest,
+    progress: Progress,
+) -> tuple[dict[WristFriction, Any], list[Loaded]]:
+    """Read and prepare every run of ``specs``, in the order given.
+
+    Returns
+    -------
+    bases, loaded
+        The base parameters of each friction form, and each run's prepared data.
+
+    Raises
+    ------
+    InputError
+        A log or an option is bad (from whichever run failed first in ``specs``' order).
+    IdentificationError
+        A worker process died without an answer.
+    """
+    bases = bases_for_forms(model)
+    links = [pay.link for _, _, pay in specs if pay is not None]
+    columns = stored_columns(model.robot, bases, links)
+    workers = _worker_count(specs)
+    if workers > 1:
+        return bases, _in_workers(model, columns, specs, req, progress)
+    loaded = []
+    for spec in specs:
+        task = progress.add_task(f"reading {spec[1]} run", total=None)
+        steps = _Steps(
+            functools.partial(_describe, progress, task), functools.partial(progress.advance, task)
+        )
+        # one run at a time: a run's raw samples are dropped before the next is read
+        loaded.append(_load_one(model, columns, spec, req, steps))
+        progress.remove_task(task)
+    return bases, loaded
+
+
+def _describe(progress: Progress, task: Any, text: str, total: int | None) -> None:
+    progress.update(task, description=text, total=total)
+
+
+def _worker_count(specs: Sequence[RunSpec]) -> int:
+    """Worker processes to use: 1 (none) for short logs or where a fork is not safe."""
+    if len(specs) < 2 or "fork" not in multiprocessing.get_all_start_methods():
+        return 1
+    if threading.active_count() > 1:  # a fork copies other threads' locks in any state
+        return 1
+    try:
+        size = sum(path.stat().st_size for path, _, _ in specs)
+    except OSError:
+        return 1  # the sequential path names the missing file
+    if size < PARALLEL_BYTES:
+        return 1
+    return min(len(specs), len(os.sched_getaffinity(0)))
+
+
+def _load_one(
+    model: RobotModel, columns: Sequence[str], spec: RunSpec, req: IdentifyRequest, steps: _Steps
+) -> Loaded:
+    path, label, payload = spec
+    run = load_run(path, model.robot, label, payload, req.current)
+    steps.describe(f"{label}: filters, regressor, decimation", run.q.shape[0])
+    prepared = prepare_recording(
+        model,
+        columns,
+        label=run.label,
+        q=run.q,
+        current=run.current,
+        rate_hz=run.rate_hz,
+        settings=_filter_for(run, req),
+        payload=run.payload,
+        source=str(run.path),
+        t0=run.t0,
+        progress=steps.advance,
+        period_s=trajectory_period(run.attachments),
+    )
+    return Loaded(prepared, _run_info(run, prepared), dict(run.meta))
+
+
+def _filter_for(run: LoadedRun, req: IdentifyRequest) -> FilterSettings:
+    bandwidth = trajectory_bandwidth(run.attachments)
+    try:
+        return default_filter(
+            run.rate_hz,
+            bandwidth,
+            cutoff_hz=req.cutoff,
+            decimate=req.decimate,
+            current_delay=req.current_delay,
+        )
+    except InputError as exc:
+        raise InputError(f"run {run.label} ({run.path}): {exc}") from None
+
+
+def _run_info(run: LoadedRun, prepared: PreparedRun) -> RunInfo:
+    st = prepared.filter
+    return RunInfo(
+        label=run.label,
+        source=str(run.path),
+        raw_samples=prepared.raw_samples,
+        samples=prepared.samples,
+        rate_hz=run.rate_hz,
+        decimated_rate_hz=prepared.rate_hz,
+        payload=run.payload.name if run.payload is not None else "none",
+        time_base=None if run.time_base is None else run.time_base.as_dict(),
+        current=run.channel,
+        filter=None
+        if st is None
+        else {
+            "cutoff_hz": st.cutoff_hz,
+            "order": st.order,
+            "decimate": st.decimate,
+            "trim": st.trim,
+            "current_delay": st.current_delay,
+        },
+        notes=list(run.notes)
+        + (
+            [
+                f"{prepared.rest_samples} samples with the robot at rest left out (and the "
+                "decimated samples whose filter window reaches them)"
+            ]
+            if prepared.rest_samples
+            else []
+        ),
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# Worker processes
+#
+# Messages from a worker, in order: ("describe", text, total) and ("advance", k) any number of
+# times, then either ("done", Loaded without its regressor, shape) followed by the regressor's
+# bytes, or ("error", exception).
+
+
+def _worker(
+    conn: Connection, model: RobotModel, columns: Sequence[str], spec: RunSpec, req: IdentifyRequest
+) -> None:
+    """A worker process's whole life: one run read, prepared and sent back."""
+    try:
+        steps = _Steps(
+            lambda text, total: conn.send(("describe", text, total)),
+            lambda k: conn.send(("advance", k)),
+        )
+        with limited_blas_threads(1):  # the workers share the CPUs already
+            loaded = _load_one(model, columns, spec, req, steps)
+        regressor = np.ascontiguousarray(loaded.prepared.regressor)
+        light = dataclasses.replace(
+            loaded, prepared=dataclasses.replace(loaded.prepared, regressor=np.empty(0))
+        )
+        conn.send(("done", light, regressor.shape))
+        conn.send_bytes(regressor.data.cast("B"))
+    except BaseException as exc:
+        try:
+            conn.send(("error", exc))
+        except Exception:  # an exception that does not pickle: its line, as a plain error
+            conn.send(("error", IdentificationError(f"{type(exc).__name__}: {exc}")))
+    finally:
+        conn.close()
+
+
+def _in_workers(
+    model: RobotModel,
+    columns: Sequence[str],
+    specs: Sequence[RunSpec],
+    req: IdentifyRequest,
+    progress: Progress,
+) -> list[Loaded]:
+    ctx = multiprocessing.get_context("fork")
+    procs: list[Any] = []
+    conns: dict[Connection, int] = {}
+    tasks = []
+    results: list[Loaded | None] = [None] * len(specs)
+    errors: dict[int, BaseException] = {}
+    limit = len(os.sched_getaffinity(0))
+    pending = list(range(len(specs)))
+    try:
+        while pending or conns:
+            while pending and len(conns) < limit:
+                i = pending.pop(0)
+                ours, theirs = ctx.Pipe(duplex=False)
+                proc = ctx.Process(
+                    target=_worker,
+                    args=(theirs, model, columns, specs[i], req),
+                    name=f"drivegain-read-{specs[i][1]}",
+                    daemon=True,
+                )
+                proc.start()
+                theirs.close()
+                procs.append(proc)
+                conns[ours] = i
+                tasks.append(progress.add_task(f"reading {specs[i][1]} run", total=None))
+            for conn in wait(list(conns)):
+                assert isinstance(conn, Connection)
+                i = conns[conn]
+                if _receive(conn, i, specs[i], progress, tasks[i], results, errors):
+                    del conns[conn]
+                    conn.close()
+                    progress.remove_task(tasks[i])
+                    if i in errors:  # the runs after it no longer matter: only the first
+                        pending = [j for j in pending if j < i]  # failure is reported
+                        for later in [c for c, j in conns.items() if j > i]:
+                            del conns[later]
+                            later.close()
+        for i in range(len(specs)):  # the first failure in the order of the runs
+            if i in errors:
+                raise errors[i]
+        return [r for r in results if r is not None]
+    finally:
+        for conn in conns:
+            conn.close()
+        for proc in procs:
+            if proc.is_alive():
+                proc.terminate()
+            proc.join()
+
+
+def _receive(
+    conn: Connection,
+    i: int,
+    spec: RunSpec,
+    progress: Progress,
+    task: Any,
+    results: list[Loaded | None],
+    errors: dict[int, BaseException],
+) -> bool:
+    """Handle one message of worker ``i``; True when it has nothing more to say."""
+    try:
+        message = conn.recv()
+    except EOFError:
+        errors[i] = IdentificationError(
+            f"run {spec[1]} ({spec[0]}): the process reading it ended without an answer"
+        )
+        return True
+    kind = message[0]
+    if kind == "describe":
+        progress.update(task, description=message[1], total=message[2])
+        return False
+    if kind == "advance":
+        progress.advance(task, message[1])
+        return False
+    if kind == "error":
+        errors[i] = message[1]
+        return True
+    light, shape = message[1], message[2]
+    regressor = np.empty(shape)
+    conn.recv_bytes_into(regressor.data.cast("B"))
+    results[i] = dataclasses.replace(
+        light, prepared=dataclasses.replace(light.prepared, regressor=regressor)
+    )
+    return True

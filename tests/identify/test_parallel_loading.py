@@ -1,0 +1,111 @@
+"""Runs read and prepared in worker processes (long logs): the same report as one after the
+other, errors named as before, a worker that dies reported by run."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import pytest
+
+from drivegain.cli import main
+from drivegain.config import resource_path
+from drivegain.errors import IdentificationError
+from drivegain.identify import loading
+from drivegain.identify.pipeline import IdentifyRequest, run_identify
+
+ROBOT = resource_path("tx40.toml")
+PAYLOAD = resource_path("payloads/calibrated-4590g.toml")
+VALIDATION = resource_path("payloads/validation-1686g.toml")
+
+
+@pytest.fixture(scope="module")
+def logs(world, sim_log, tmp_path_factory) -> dict[str, Path]:
+    d = tmp_path_factory.mktemp("logs")
+    return {
+        "a": sim_log(d / "a.mcap", 0, None, 11, seconds=20.0),
+        "b": sim_log(d / "b.mcap", 1, world.payload, 12, seconds=20.0),
+        "c": sim_log(d / "c.mcap", 2, world.validation, 13, seconds=20.0),
+    }
+
+
+def _argv(logs: dict[str, Path], out: Path, unloaded: Path | None = None) -> list[str]:
+    return [
+        "identify",
+        *("--robot", str(ROBOT), "--unloaded", str(unloaded or logs["a"])),
+        *("--loaded", str(logs["b"]), "--payload", str(PAYLOAD)),
+        *("--validate", str(logs["c"]), "--validate-payload", str(VALIDATION)),
+        *("--no-plots", "--out", str(out)),
+    ]
+
+
+@pytest.fixture
+def parallel(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Any log size takes the worker processes (where a fork is safe here)."""
+    monkeypatch.setattr(loading, "PARALLEL_BYTES", 0)
+    specs = [(Path(__file__), "a", None), (Path(__file__), "b", None)]
+    if len(os.sched_getaffinity(0)) < 2 or loading._worker_count(specs) < 2:
+        pytest.skip("one CPU, no fork or other threads running: the runs are read in turn")
+
+
+def _without_times(report: dict) -> dict:
+    report = dict(report)
+    report.pop("files", None)
+    return report
+
+
+def test_workers_give_the_report_of_the_runs_read_in_turn(
+    logs: dict[str, Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    assert main(_argv(logs, tmp_path / "in-turn")) == 0
+    monkeypatch.setattr(loading, "PARALLEL_BYTES", 0)
+    if loading._worker_count([(logs["a"], "a", None), (logs["b"], "b", None)]) < 2:
+        pytest.skip("one CPU, no fork or other threads running: the runs are read in turn")
+    calls = []
+    real = loading._in_workers
+    monkeypatch.setattr(loading, "_in_workers", lambda *a: calls.append(1) or real(*a))
+    assert main(_argv(logs, tmp_path / "workers")) == 0
+    assert calls == [1]
+    a = json.loads((tmp_path / "in-turn" / "report.json").read_text())
+    b = json.loads((tmp_path / "workers" / "report.json").read_text())
+    assert _without_times(a) == _without_times(b)  # every number, to the last bit
+    assert [r["label"] for r in b["runs"]] == ["unloaded", "loaded", "validation"]
+
+
+def test_a_corrupt_log_read_by_a_worker_is_named_and_nothing_is_written(
+    logs: dict[str, Path], tmp_path: Path, parallel: None, capsys: pytest.CaptureFixture[str]
+) -> None:
+    bad = tmp_path / "bad.mcap"
+    data = bytearray(logs["a"].read_bytes())
+    data[len(data) // 2 : len(data) // 2 + 64] = b"\xff" * 64  # inside a compressed chunk
+    bad.write_bytes(bytes(data))
+    out = tmp_path / "out"
+    assert main(_argv(logs, out, unloaded=bad)) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(bad) in err[0] and "corrupt" in err[0], err
+    assert not out.exists()
+
+
+def test_a_worker_that_dies_is_reported_by_run(
+    logs: dict[str, Path], tmp_path: Path, parallel: None, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    def die(model, columns, spec, req, steps):  # runs in the forked worker only
+        if spec[1] == "loaded":
+            os._exit(3)
+        return real(model, columns, spec, req, steps)
+
+    real = loading._load_one
+    monkeypatch.setattr(loading, "_load_one", die)
+    req = IdentifyRequest(
+        robot=ROBOT,
+        unloaded=logs["a"],
+        loaded=logs["b"],
+        payload=PAYLOAD,
+        out=tmp_path / "out",
+        progress=False,
+        plots=False,
+    )
+    with pytest.raises(IdentificationError, match=r"run loaded \(.*b\.mcap\): the process"):
+        run_identify(req)
+    assert not (tmp_path / "out").exists()
