@@ -23,6 +23,10 @@ class Pacer(Protocol):
 
     def start(self) -> None: ...
 
+    def anchor(self) -> None:
+        """The cycles begin now (after the drives were enabled): deadlines count from here."""
+        ...
+
     def wait(self, cycle: int) -> int:
         """Block until cycle ``cycle`` may start; return its log time (ns since the epoch)."""
         ...
@@ -51,6 +55,9 @@ class LockstepPacer:
 
     def start(self) -> None:
         self.epoch_ns = time.time_ns()
+
+    def anchor(self) -> None:
+        pass  # no deadlines
 
     def wait(self, cycle: int) -> int:
         self._cycle = cycle
@@ -89,10 +96,14 @@ class RealtimePacer:
         self.consecutive_overruns = 0
 
     def start(self) -> None:
-        mono = time.monotonic_ns()
-        self._wall_minus_mono = time.time_ns() - mono
-        # the first deadline one period from now leaves room for the first RPDOs
-        self._t0 = mono + self.period_ns
+        self._wall_minus_mono = time.time_ns() - time.monotonic_ns()
+        self.anchor()
+
+    def anchor(self) -> None:
+        # the first deadline one period from now leaves room for the first RPDOs; called again
+        # once the drives are enabled, so that the enabling (tens of ms of SDO exchanges) does
+        # not make cycle 0 late
+        self._t0 = time.monotonic_ns() + self.period_ns
         self._offset = 0
 
     def deadline_ns(self, cycle: int) -> int:

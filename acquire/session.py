@@ -168,7 +168,8 @@ class Session:
         thread part (SCHED_FIFO); its process part (garbage-collector freeze) is the rig's.
     pipelined
         Collect each cycle's TPDOs one cycle later (:meth:`Master.cycle_pipelined`); default:
-        in realtime, not in lockstep.
+        in realtime, not in lockstep. With the SYNC echo, each cycle's RPDOs are also sent
+        ahead of its deadline (:meth:`Master.stage`).
 
     Attributes
     ----------
@@ -329,6 +330,7 @@ class Session:
 
     def _loop(self, pacer: Pacer, recorder: Recorder) -> None:
         started = time.monotonic()
+        pacer.anchor()
         try:
             self._cycles(pacer, recorder)
         finally:
@@ -367,6 +369,10 @@ class Session:
                     self.state = _PHASE_STATE[ph]
                     self._event(EventLevel.INFO, f"phase {ph.name.lower()}", phase=ph.name.lower())
             q_sp = setpoints.state(k)[0]
+            if self._after_sync:
+                # the RPDOs go out before the deadline (the drives hold them until the SYNC):
+                # at the deadline only the SYNC is sent, so its timing is the pacer's alone
+                self.master.stage(q_sp)
             log_ns = pacer.wait(k)
             if isinstance(pacer, RealtimePacer) and (
                 pacer.consecutive_overruns > cfg.supervision.max_overruns

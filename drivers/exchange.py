@@ -36,7 +36,7 @@ from drivegain.drivers.bus import BusLoad, bus_load
 from drivegain.drivers.cia402 import Command, State, decode_statusword
 from drivegain.drivers.link import DriveLink, Timeouts, error_code, send
 from drivegain.drivers.supervisor import Supervisor
-from drivegain.errors import DriveError, TrajectoryError
+from drivegain.errors import DriveError, TrajectoryError, UsageError
 from drivegain.formats.log import EventLevel
 
 #: Columns of :attr:`CycleSample.raw`, in order.
@@ -242,6 +242,8 @@ class CycleExchanger:
         self.cycle = 0
         self.controlword = int(Command.SHUTDOWN)
         self.targets = np.zeros(len(self.drives), dtype=np.int64)
+        #: targets whose RPDOs :meth:`stage` sent for the next SYNC, if any
+        self.staged: np.ndarray | None = None
 
     def bus_load(self, period_s: float, bitrate: int) -> BusLoad:
         """Bus load of this exchange every ``period_s`` s at ``bitrate`` bit/s."""
@@ -301,24 +303,47 @@ class CycleExchanger:
         with self._lock:
             return self._open[0] if self._open else None
 
+    def stage(self, counts: np.ndarray) -> None:
+        """Send the RPDOs of the next SYNC now (``counts`` + :attr:`controlword`); :meth:`send`
+        then sends the SYNC alone. The drives' RPDOs are synchronous: each drive holds what it
+        received until the SYNC, so sending them ahead of the deadline changes nothing but
+        the SYNC's own timing, which is then the pacer's alone.
+
+        Raises
+        ------
+        BusError
+            The interface failed (nothing is staged then).
+        """
+        self.staged = None
+        self._send_rpdos(counts)
+        self.staged = np.array(counts)
+
+    def _send_rpdos(self, counts: np.ndarray) -> None:
+        cw = self.controlword
+        for d in self.drives:
+            send(self.network, 0x200 + d.node_id, self._rpdo.pack(int(counts[d.joint]), cw))
+
     def send(self, counts: np.ndarray) -> InFlight:
         """Open cycle :attr:`cycle` for its TPDOs, send the RPDOs (``counts`` +
-        :attr:`controlword`) and SYNC; the TPDOs are then taken by :meth:`collect`.
+        :attr:`controlword`) unless :meth:`stage` sent them, and SYNC; the TPDOs are then taken
+        by :meth:`collect`.
 
         Raises
         ------
         BusError
             The interface failed (the cycle is then given up).
         """
+        staged, self.staged = self.staged, None
+        if staged is not None and staged is not counts and not np.array_equal(staged, counts):
+            raise UsageError("send: the targets differ from the ones staged for this SYNC")
         cycle = self.cycle
         counter = ob.sync_counter(cycle)
         flight = InFlight(cycle, counter, len(self.drives), counts)
         with self._lock:
             self._open.append(flight)
         try:
-            cw = self.controlword
-            for d in self.drives:
-                send(self.network, 0x200 + d.node_id, self._rpdo.pack(int(counts[d.joint]), cw))
+            if staged is None:
+                self._send_rpdos(counts)
             flight.sync_ns = time.time_ns()
             flight.sync_mono_s = time.monotonic()
             flight.sync_clock = self.supervisor.clock.now()
@@ -353,7 +378,9 @@ class CycleExchanger:
 
     def abandon(self) -> None:
         """Give up every cycle in flight (a quick stop, a new enable): their TPDOs, when they
-        come, are dropped without an event."""
+        come, are dropped without an event. Staged RPDOs are forgotten: the next SYNC is sent
+        with RPDOs of its own, which replace them in the drives."""
+        self.staged = None
         with self._lock:
             for flight in self._open:
                 self._abandoned.append(flight.counter)

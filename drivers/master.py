@@ -54,7 +54,7 @@ from drivegain.drivers.link import DriveLink, Timeouts, sdo_read, sdo_write, sen
 from drivegain.drivers.simtime import HANG_S, LockstepClock, TimeBase, WallTime
 from drivegain.drivers.statewalk import StateWalker
 from drivegain.drivers.supervisor import ERROR_FRAMES_PER_S, DriveEvent, Supervisor
-from drivegain.errors import BusError, ConfigError, DriveError
+from drivegain.errors import BusError, ConfigError, DriveError, UsageError
 from drivegain.formats.log import EventLevel
 
 __all__ = [
@@ -229,6 +229,7 @@ class Master:
             supervisor=self._supervisor,
         )
         self._streaming = False
+        self._staged_target = np.zeros(0)  # the target of stage(), rad
         self._booted = False
         self._closed = False
         # Nodes join the network only once the EDS passed the configurator's check: a refused
@@ -383,6 +384,35 @@ class Master:
         self.check()
         return self._exchanger.target_counts(target)
 
+    def stage(self, target: np.ndarray) -> None:
+        """Send the RPDOs of the next :meth:`cycle_pipelined` now, ahead of its deadline.
+
+        The drives hold synchronous RPDOs until the SYNC, so the next call, given the same
+        ``target``, then sends the SYNC alone at its deadline: its timing no longer includes
+        the RPDOs' sends. Only with the SYNC echo (:attr:`layout` tagged), where the previous
+        cycle's TPDOs are taken after the SYNC; a quick stop or a disable forgets what was
+        staged (the SYNCs they send carry RPDOs of their own).
+
+        Raises
+        ------
+        DriveError
+            As :meth:`cycle_pipelined` (a pending fault; nothing is sent).
+        BusError
+            The interface failed.
+        TrajectoryError
+            ``target`` is not finite or outside the encoder range (nothing sent).
+        UsageError
+            Without the SYNC echo.
+        """
+        if not self.layout.tagged:
+            raise UsageError(
+                "stage: without the SYNC echo the previous cycle's TPDOs are taken before the "
+                "SYNC, so the RPDOs cannot go out ahead of it"
+            )
+        counts = self._streaming_targets(target)
+        self._staged_target = np.array(target, dtype=float)
+        self._exchanger.stage(counts)
+
     def cycle_pipelined(self, target: np.ndarray) -> PipelinedCycle:
         """One pipelined SYNC cycle: RPDOs (target 0x607A + controlword) and SYNC of cycle k,
         then the TPDOs of cycle k−1, checked as :meth:`cycle` checks its own.
@@ -413,8 +443,14 @@ class Master:
         TrajectoryError
             ``target`` is not finite or outside the encoder range (nothing sent).
         """
-        counts = self._streaming_targets(target)
         ex = self._exchanger
+        if ex.staged is None:
+            counts = self._streaming_targets(target)
+        else:  # converted and checked by stage(); a fault since then still stops the SYNC
+            if not np.array_equal(target, self._staged_target):
+                raise UsageError("cycle_pipelined: not the target staged for this SYNC")
+            self.check()
+            counts = ex.staged
         previous = ex.in_flight
         sample: CycleSample | None = None
         if previous is not None and not self.layout.tagged:

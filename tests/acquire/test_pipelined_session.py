@@ -46,6 +46,7 @@ def test_a_pipelined_log_equals_the_same_cycle_log(
     same, res_same = _run(config, short_trajectory, tmp_path / "same.mcap", pipelined=False)
     piped, res_piped = _run(config, short_trajectory, tmp_path / "piped.mcap", pipelined=True)
     assert not same.pipelined and piped.pipelined
+    assert piped.master.layout.tagged  # so the pipelined run staged its RPDOs (Master.stage)
     assert res_same.state is res_piped.state is RunState.FINISHED
     assert res_piped.cycles == res_same.cycles
     a, b = read_run(res_same.path), read_run(res_piped.path)  # type: ignore[arg-type]

@@ -54,6 +54,20 @@ def test_realtime_deadlines_are_absolute(clock: FakeClock) -> None:
     assert stats.wake_late.quantile(0.99) == pytest.approx(30_000, abs=1_000)
 
 
+def test_the_time_the_drives_take_to_enable_does_not_make_cycle_0_late(clock: FakeClock) -> None:
+    """The session starts its pacer, enables the drives (tens of ms of SDO exchanges), then
+    anchors the deadlines: cycle 0 is due a period after the anchor, not after the start."""
+    stats = LoopStats(period_s=0.004, clock="realtime")
+    p = RealtimePacer(0.004, stats)
+    p.start()
+    clock.mono += 15_000_000  # enabling: 15 ms
+    p.anchor()
+    anchored = clock.mono
+    p.wait(0)
+    assert p.deadline_ns(0) == anchored + 4_000_000
+    assert stats.overruns == 0 and stats.wake_late.quantile(1.0) == pytest.approx(30_000, abs=1)
+
+
 def test_realtime_overrun_reanchors_without_a_burst(clock: FakeClock) -> None:
     stats = LoopStats(period_s=0.004, clock="realtime")
     p = RealtimePacer(0.004, stats)

@@ -19,7 +19,7 @@ import pytest
 
 from drivegain.drivers import objects as ob
 from drivegain.drivers.master import Master, Timeouts
-from drivegain.errors import DriveError
+from drivegain.errors import DriveError, UsageError
 
 NODE = 1
 PERIOD = 0.004
@@ -241,4 +241,40 @@ def test_without_the_sync_echo_a_cycle_closes_before_the_next_sync(
     master.close()
     assert rig.bus.mismatches == [] and rig.bus.remaining() == []
     # no SYNC 4: the silent cycle was closed before the next SYNC could go out
+    assert [data for cob, data in rig.bus.sent if cob == 0x080] == [b"\x01", b"\x02", b"\x03"]
+
+
+def test_staged_rpdos_go_out_ahead_and_the_sync_alone_at_the_deadline(
+    one_joint_robot, scripted, frames
+):
+    """stage() sends a cycle's RPDO at once and no SYNC; cycle_pipelined() with the same target
+    then sends the SYNC alone, and the samples are those of the unstaged cycle. A target other
+    than the staged one is refused before any SYNC; the disable forgets what was staged."""
+    f = frames
+    q = targets(3)
+    c = [counts_of(x) for x in q]
+    script = [*S.boot_script(f), *S.enable_script(f)]
+    for k in range(3):
+        script += [rpdo(f, c[k]), sync(f, k + 1), tpdo1(f, k + 1, 5001 + k), tpdo2(f, k + 1)]
+    script += [rpdo(f, counts_of(0.5)), *disable_and_close(f)]
+    rig = scripted(script)
+    master = Master(one_joint_robot, rig.network, period_s=PERIOD, timeouts=TIMEOUTS)
+    master.boot()
+    master.enable()
+    samples = []
+    for x in q:
+        before = len(rig.bus.sent)
+        master.stage([x])
+        assert [cob for cob, _ in rig.bus.sent[before:]] == [0x201]  # the RPDO, no SYNC yet
+        step = master.cycle_pipelined([x])
+        assert [cob for cob, _ in rig.bus.sent[before + 1 :]] == [0x080]  # the SYNC alone
+        samples.append(step.sample)
+    samples = [*samples[1:], master.collect_pending()]
+    assert [s.raw["target"] for s in samples] == [[x] for x in c]
+    assert [s.raw["position"] for s in samples] == [[5001], [5002], [5003]]
+    master.stage([0.5])
+    with pytest.raises(UsageError, match="not the target staged"):
+        master.cycle_pipelined([0.6])
+    master.close()
+    assert rig.bus.mismatches == [] and rig.bus.remaining() == []
     assert [data for cob, data in rig.bus.sent if cob == 0x080] == [b"\x01", b"\x02", b"\x03"]

@@ -16,17 +16,17 @@ from drivegain.identify import loading
 from drivegain.identify.pipeline import IdentifyRequest, run_identify
 
 ROBOT = resource_path("tx40.toml")
-PAYLOAD = resource_path("payloads/calibrated-4590g.toml")
-VALIDATION = resource_path("payloads/validation-1686g.toml")
+PAYLOADS = {"b": "payloads/calibrated-4590g.toml", "c": "payloads/validation-1686g.toml"}
 
 
 @pytest.fixture(scope="module")
 def logs(world, sim_log, tmp_path_factory) -> dict[str, Path]:
+    """Runs a (unloaded), b (calibrated payload) and c (validation payload), 20 s each."""
     d = tmp_path_factory.mktemp("logs")
+    runs = {"a": (0, None), "b": (1, world.payload), "c": (2, world.validation)}
     return {
-        "a": sim_log(d / "a.mcap", 0, None, 11, seconds=20.0),
-        "b": sim_log(d / "b.mcap", 1, world.payload, 12, seconds=20.0),
-        "c": sim_log(d / "c.mcap", 2, world.validation, 13, seconds=20.0),
+        key: sim_log(d / f"{key}.mcap", which, payload, 11 + which, seconds=20.0)
+        for key, (which, payload) in runs.items()
     }
 
 
@@ -34,8 +34,8 @@ def _argv(logs: dict[str, Path], out: Path, unloaded: Path | None = None) -> lis
     return [
         "identify",
         *("--robot", str(ROBOT), "--unloaded", str(unloaded or logs["a"])),
-        *("--loaded", str(logs["b"]), "--payload", str(PAYLOAD)),
-        *("--validate", str(logs["c"]), "--validate-payload", str(VALIDATION)),
+        *("--loaded", str(logs["b"]), "--payload", str(resource_path(PAYLOADS["b"]))),
+        *("--validate", str(logs["c"]), "--validate-payload", str(resource_path(PAYLOADS["c"]))),
         *("--no-plots", "--out", str(out)),
     ]
 
@@ -101,7 +101,7 @@ def test_a_worker_that_dies_is_reported_by_run(
         robot=ROBOT,
         unloaded=logs["a"],
         loaded=logs["b"],
-        payload=PAYLOAD,
+        payload=resource_path(PAYLOADS["b"]),
         out=tmp_path / "out",
         progress=False,
         plots=False,
