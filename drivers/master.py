@@ -421,7 +421,8 @@ class Master:
         to ``tpdo_s`` after their SYNC without delaying SYNC k. Without it, a cycle's TPDOs are
         those received before the next SYNC, so they are taken before SYNC k goes out (waiting,
         if one is not in yet, up to ``tpdo_s`` after their SYNC). After the last call,
-        :meth:`collect_pending` takes the last cycle's TPDOs.
+        :meth:`collect_pending` takes the last cycle's TPDOs. After :meth:`stage` of the same
+        ``target``, only the SYNC is sent.
 
         Parameters
         ----------
