@@ -168,8 +168,7 @@ class Session:
         thread part (SCHED_FIFO); its process part (garbage-collector freeze) is the rig's.
     pipelined
         Collect each cycle's TPDOs one cycle later (:meth:`Master.cycle_pipelined`); default:
-        in realtime, not in lockstep. With the SYNC echo, each cycle's RPDOs are also sent
-        ahead of its deadline (:meth:`Master.stage`).
+        in realtime, not in lockstep. With the SYNC echo, RPDOs go out ahead (:meth:`Master.stage`).
 
     Attributes
     ----------
@@ -369,9 +368,7 @@ class Session:
                     self.state = _PHASE_STATE[ph]
                     self._event(EventLevel.INFO, f"phase {ph.name.lower()}", phase=ph.name.lower())
             q_sp = setpoints.state(k)[0]
-            if self._after_sync:
-                # the RPDOs go out before the deadline (the drives hold them until the SYNC):
-                # at the deadline only the SYNC is sent, so its timing is the pacer's alone
+            if self._after_sync:  # RPDOs before the deadline, the SYNC alone at it
                 self.master.stage(q_sp)
             log_ns = pacer.wait(k)
             if isinstance(pacer, RealtimePacer) and (

@@ -22,12 +22,14 @@ Either way a sample holds the drives' answers to its own SYNC, with the targets 
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+import can
 import canopen
 import numpy as np
 
@@ -35,9 +37,12 @@ from drivegain.drivers import objects as ob
 from drivegain.drivers.bus import BusLoad, bus_load
 from drivegain.drivers.cia402 import Command, State, decode_statusword
 from drivegain.drivers.link import DriveLink, Timeouts, error_code, send
+from drivegain.drivers.simtime import TimeBase
 from drivegain.drivers.supervisor import Supervisor
 from drivegain.errors import DriveError, TrajectoryError, UsageError
 from drivegain.formats.log import EventLevel
+
+_log = logging.getLogger(__name__)
 
 #: Columns of :attr:`CycleSample.raw`, in order.
 RAW_FIELDS = (
@@ -539,3 +544,45 @@ class CycleExchanger:
             if flight.missing == 0:
                 flight.last_arrival = sent
                 flight.complete.set()
+
+
+class FrameDispatcher(can.Listener):
+    """Hands every frame of the bus to the part of the master that handles it: TPDOs to the
+    exchanger, heartbeats, EMCYs and error frames to the supervisor (runs in the notifier
+    thread)."""
+
+    def __init__(self, exchanger: CycleExchanger, supervisor: Supervisor, clock: TimeBase):
+        self.exchanger = exchanger
+        self.supervisor = supervisor
+        self.clock = clock
+
+    def on_message_received(self, msg: can.Message) -> None:
+        try:
+            self._dispatch(msg)
+        except Exception as exc:  # never let one frame kill the reader thread
+            _log.exception("drive master: frame handling failed")
+            self.supervisor.add_fault(DriveError(f"internal error handling a frame: {exc!r}"))
+
+    def _dispatch(self, msg: can.Message) -> None:
+        if msg.is_error_frame:
+            self.supervisor.on_error_frame(msg)
+            return
+        if msg.is_remote_frame:
+            return
+        cob = msg.arbitration_id
+        hit = self.exchanger.tpdo_index.get(cob)
+        if hit is not None:
+            self.exchanger.on_tpdo(hit[0], hit[1], bytes(msg.data), self.clock.stamp(msg))
+            return
+        node_id = cob & 0x7F
+        d = self.supervisor.by_node.get(node_id)
+        if d is None:
+            return
+        function = cob & 0x780
+        if function == 0x700 and msg.dlc >= 1:
+            self.supervisor.on_heartbeat(d, msg.data[0] & 0x7F, self.clock.stamp(msg))
+        elif function == 0x080 and node_id != 0:
+            self.supervisor.on_emcy(d, bytes(msg.data))
+
+    def stop(self) -> None:
+        """Nothing to release."""

@@ -38,7 +38,6 @@ import logging
 import time
 from pathlib import Path
 
-import can
 import canopen
 import numpy as np
 from canopen.objectdictionary import ObjectDictionary
@@ -48,7 +47,13 @@ from drivegain.drivers import objects as ob
 from drivegain.drivers.bus import BusLoad
 from drivegain.drivers.cia402 import POWERED, Command, State
 from drivegain.drivers.configure import DriveConfigurator
-from drivegain.drivers.exchange import CycleExchanger, CycleSample, PipelinedCycle, SyncSent
+from drivegain.drivers.exchange import (
+    CycleExchanger,
+    CycleSample,
+    FrameDispatcher,
+    PipelinedCycle,
+    SyncSent,
+)
 from drivegain.drivers.heartbeat import HeartbeatProducer, MasterHeartbeat
 from drivegain.drivers.link import DriveLink, Timeouts, sdo_read, sdo_write, send
 from drivegain.drivers.simtime import HANG_S, LockstepClock, TimeBase, WallTime
@@ -74,47 +79,6 @@ logger = logging.getLogger(__name__)
 _NMT_START = 0x01
 _NMT_PRE_OPERATIONAL = 0x80
 _NMT_RESET_COMMUNICATION = 0x82
-
-
-class _Dispatcher(can.Listener):
-    """Hands every frame of the bus to the part of the master that handles it (runs in the
-    notifier thread)."""
-
-    def __init__(self, exchanger: CycleExchanger, supervisor: Supervisor, clock: TimeBase):
-        self.exchanger = exchanger
-        self.supervisor = supervisor
-        self.clock = clock
-
-    def on_message_received(self, msg: can.Message) -> None:
-        try:
-            self._dispatch(msg)
-        except Exception as exc:  # never let one frame kill the reader thread
-            logger.exception("drive master: frame handling failed")
-            self.supervisor.add_fault(DriveError(f"internal error handling a frame: {exc!r}"))
-
-    def _dispatch(self, msg: can.Message) -> None:
-        if msg.is_error_frame:
-            self.supervisor.on_error_frame(msg)
-            return
-        if msg.is_remote_frame:
-            return
-        cob = msg.arbitration_id
-        hit = self.exchanger.tpdo_index.get(cob)
-        if hit is not None:
-            self.exchanger.on_tpdo(hit[0], hit[1], bytes(msg.data), self.clock.stamp(msg))
-            return
-        node_id = cob & 0x7F
-        d = self.supervisor.by_node.get(node_id)
-        if d is None:
-            return
-        function = cob & 0x780
-        if function == 0x700 and msg.dlc >= 1:
-            self.supervisor.on_heartbeat(d, msg.data[0] & 0x7F, self.clock.stamp(msg))
-        elif function == 0x080 and node_id != 0:
-            self.supervisor.on_emcy(d, bytes(msg.data))
-
-    def stop(self) -> None:
-        """Nothing to release."""
 
 
 class Master:
@@ -236,7 +200,7 @@ class Master:
         # master leaves nothing behind.
         for d in self._drives:
             network.add_node(d.node)
-        self._listener = _Dispatcher(self._exchanger, self._supervisor, self.clock)
+        self._listener = FrameDispatcher(self._exchanger, self._supervisor, self.clock)
         network.notifier.add_listener(self._listener)
         self._producer = HeartbeatProducer(network, self.heartbeat, self.clock)
         if isinstance(self.clock, LockstepClock):
