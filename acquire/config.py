@@ -206,6 +206,18 @@ class AcquisitionSettings:
             doc="SCHED_FIFO priority of the cycle thread (0: off)",
         ),
     )
+    spin_s: float = field(
+        default=0.0,
+        metadata=setting(
+            unit="s",
+            ge=0.0,
+            le=0.01,
+            message="must be between 0 and 0.01 s, got {value}",
+            doc="realtime: the last part of each period busy-waited rather than slept (a "
+            "SYNC on time whatever the scheduler's wake-up; costs that share of a core and "
+            "holds the interpreter meanwhile; 0 = sleep only)",
+        ),
+    )
     tpdo_timeout_s: float | None = field(
         default=None,
         metadata=setting(

@@ -297,7 +297,7 @@ class Session:
         if cfg.clock == Clock.LOCKSTEP:
             pacer = LockstepPacer(cfg.period_s, self.stats)
         else:
-            pacer = RealtimePacer(cfg.period_s, self.stats)
+            pacer = RealtimePacer(cfg.period_s, self.stats, spin_s=cfg.spin_s)
         self._pacer = pacer
         pacer.start()
         recorder.start()

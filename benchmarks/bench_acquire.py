@@ -120,7 +120,13 @@ def gentle_trajectory(duration_s: float, folder: Path) -> Path:
 
 
 def config(
-    clock: str, period_s: float, folder: Path, *, sim_host: str = "thread", rt_priority: int = 0
+    clock: str,
+    period_s: float,
+    folder: Path,
+    *,
+    sim_host: str = "thread",
+    rt_priority: int = 0,
+    spin_s: float = 0.0,
 ) -> AcquisitionConfig:
     base = load_acquisition_config(resource_path("acquire-sim.toml"))
     assert base.simulation is not None
@@ -134,6 +140,7 @@ def config(
         simulation=sim,
         bus=bus,
         rt_priority=rt_priority,
+        spin_s=spin_s,
         # a late TPDO is counted (late_cycles), not fatal, and so are missed deadlines
         # (overruns): the benchmark measures them
         tpdo_timeout_s=0.2 if clock == "realtime" else 2.0,
@@ -271,19 +278,22 @@ def realtime(
     sim_host: str,
     rt_priority: int,
     same_cycle: bool = False,
+    spin_s: float = 0.0,
 ) -> None:
     where = "their own process" if sim_host == "process" else "the master's process"
     probe = config("realtime", 1.0 / rates[0], folder, sim_host=sim_host, rt_priority=rt_priority)
     print(
         f"\n== realtime, 6 simulated drives in {where}, {duration:g} s of excitation per rate, "
-        f"SCHED_FIFO {rt_priority}: {fifo_granted(probe)} =="
+        f"SCHED_FIFO {rt_priority}: {fifo_granted(probe)}, spin_s {spin_s:g} =="
     )
     print(_RT_HEADER)
     traj = gentle_trajectory(duration, folder)
     loops = [("pipelined", True)] + ([("same cycle", False)] if same_cycle else [])
     for rate in rates:
         period = 1.0 / rate
-        cfg = config("realtime", period, folder, sim_host=sim_host, rt_priority=rt_priority)
+        cfg = config(
+            "realtime", period, folder, sim_host=sim_host, rt_priority=rt_priority, spin_s=spin_s
+        )
         # the bare loop for as long as the sessions' excitation, beside the same drives
         base = baseline_under_load(cfg, duration)
         blank = f"{'-':>5} {'-':>5}"
@@ -534,6 +544,12 @@ def main(argv: list[str] | None = None) -> int:
         "--rt-priority", type=int, default=80, help="realtime: SCHED_FIFO priority, 0 = off"
     )
     p.add_argument(
+        "--spin-s",
+        type=float,
+        default=0.0,
+        help="realtime: [acquisition] spin_s of the sessions (busy-waited end of each period, s)",
+    )
+    p.add_argument(
         "--same-cycle",
         action="store_true",
         help="realtime: also run the same-cycle master (waits for each cycle's own TPDOs)",
@@ -561,6 +577,7 @@ def main(argv: list[str] | None = None) -> int:
                 args.sim_host,
                 args.rt_priority,
                 same_cycle=args.same_cycle,
+                spin_s=args.spin_s,
             )
         if "lockstep" not in args.skip:
             lockstep(args.lockstep_seconds, folder)

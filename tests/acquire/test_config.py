@@ -43,6 +43,7 @@ def test_shipped_configs_load() -> None:
     rt = load_acquisition_config(resource_path("acquire-sim-realtime.toml"))
     assert rt.clock == "realtime" and rt.bus.interface == "drivegain-ipc"
     assert rt.simulation is not None and rt.rt_priority == 80
+    assert (rt.spin_s, hw.spin_s) == (0.0, pytest.approx(3e-4))
 
 
 def test_systemd_unit_is_type_notify() -> None:
@@ -101,6 +102,8 @@ channel = "x"
         ("following_error = -1.0", "", "key 'acquisition.following_error': must be > 0"),
         ("velocity_margin = 0.5", "", "key 'acquisition.velocity_margin': must be >= 1"),
         ("rt_priority = 120", "", "key 'acquisition.rt_priority'"),
+        ("spin_s = -0.001", "", "key 'acquisition.spin_s': must be between 0 and 0.01 s"),
+        ("spin_s = 0.5", "", "key 'acquisition.spin_s': must be between 0 and 0.01 s"),
         ("", "[daemon]\noutput_dir = 'x'", "key 'daemon.socket': missing"),
         ("", "[daemon]\nsocket = 's'\noutput_dir = 'x'\nlog_format = 'xml'", "daemon.log_format"),
         ("", "[simulation]\nclock = 'fast'", "key 'simulation.clock'"),

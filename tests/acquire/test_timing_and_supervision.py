@@ -68,6 +68,30 @@ def test_the_time_the_drives_take_to_enable_does_not_make_cycle_0_late(clock: Fa
     assert stats.overruns == 0 and stats.wake_late.quantile(1.0) == pytest.approx(30_000, abs=1)
 
 
+def test_a_spinning_pacer_sleeps_short_and_busy_waits_to_the_deadline(
+    clock: FakeClock, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """spin_s = 0.3 ms: the sleep ends 0.3 ms early (its 30 µs oversleep included), the rest is
+    busy-waited, so the cycle starts at its deadline, not 30 µs after it."""
+    reads = 0
+
+    def ticking() -> int:  # busy-waiting reads the clock; each read takes 1 µs here
+        nonlocal reads
+        reads += 1
+        clock.mono += 1_000
+        return clock.mono
+
+    monkeypatch.setattr(pacing.time, "monotonic_ns", ticking)
+    stats = LoopStats(period_s=0.004, clock="realtime")
+    p = RealtimePacer(0.004, stats, spin_s=3e-4)
+    p.start()
+    deadline = p.deadline_ns(0)
+    p.wait(0)
+    assert clock.sleeps[0] == pytest.approx(0.004 - 3e-4, abs=5e-6)
+    assert reads > 200  # spun
+    assert 0 <= stats.wake_late.quantile(1.0) <= 2_000 and clock.mono - deadline <= 3_000
+
+
 def test_realtime_overrun_reanchors_without_a_burst(clock: FakeClock) -> None:
     stats = LoopStats(period_s=0.004, clock="realtime")
     p = RealtimePacer(0.004, stats)
