@@ -102,7 +102,7 @@ def load_and_prepare(
     columns = stored_columns(model.robot, bases, links)
     workers = _worker_count(specs)
     if workers > 1:
-        return bases, _in_workers(model, columns, specs, req, progress)
+        return bases, _in_workers(model, columns, specs, req, progress, workers)
     loaded = []
     for spec in specs:
         task = progress.add_task(f"reading {spec[1]} run", total=None)
@@ -244,18 +244,18 @@ def _in_workers(
     specs: Sequence[RunSpec],
     req: IdentifyRequest,
     progress: Progress,
+    workers: int,
 ) -> list[Loaded]:
     ctx = multiprocessing.get_context("fork")
     procs: list[Any] = []
     conns: dict[Connection, int] = {}
-    tasks = []
+    tasks: dict[int, Any] = {}  # run -> its progress task
     results: list[Loaded | None] = [None] * len(specs)
     errors: dict[int, BaseException] = {}
-    limit = len(os.sched_getaffinity(0))
     pending = list(range(len(specs)))
     try:
         while pending or conns:
-            while pending and len(conns) < limit:
+            while pending and len(conns) < workers:
                 i = pending.pop(0)
                 ours, theirs = ctx.Pipe(duplex=False)
                 proc = ctx.Process(
@@ -268,7 +268,7 @@ def _in_workers(
                 theirs.close()
                 procs.append(proc)
                 conns[ours] = i
-                tasks.append(progress.add_task(f"reading {specs[i][1]} run", total=None))
+                tasks[i] = progress.add_task(f"reading {specs[i][1]} run", total=None)
             for conn in wait(list(conns)):
                 assert isinstance(conn, Connection)
                 i = conns[conn]

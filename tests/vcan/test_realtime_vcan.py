@@ -31,6 +31,7 @@ import numpy as np
 import pytest
 
 from drivegain.config import load_robot, resource_path
+from drivegain.drivers.cia402 import State, decode_statusword
 from drivegain.errors import DrivegainError
 from drivegain.formats.fourier import FourierTrajectory
 from drivegain.formats.logreader import RunLog, iter_channel, read_run
@@ -196,10 +197,9 @@ def final_speeds_rad_s(
     return np.array(speeds)
 
 
-def final_states(trace: list[can.Message], node_ids: list[int]) -> list[str]:
+def final_states(trace: list[can.Message], node_ids: list[int]) -> list[State]:
     """Each drive's CiA 402 state in its last statusword on the wire (TPDO2 bytes 0-1 of the
-    echoing layout), by the statusword's state bits (CiA 402 table: 0x4F masks them)."""
-    names = {0x40: "SWITCH_ON_DISABLED", 0x21: "READY_TO_SWITCH_ON", 0x23: "SWITCHED_ON"}
+    echoing layout)."""
     out = []
     for node in node_ids:
         words = [
@@ -208,8 +208,7 @@ def final_states(trace: list[can.Message], node_ids: list[int]) -> list[str]:
             if m.arbitration_id == 0x280 + node and not m.is_error_frame
         ]
         assert words, f"node {node}: no TPDO2 in the trace"
-        sw = words[-1]
-        out.append(names.get(sw & 0x4F, names.get(sw & 0x6F, f"0x{sw:04X}")))
+        out.append(decode_statusword(words[-1], node))
     return out
 
 
@@ -316,4 +315,4 @@ def test_kernel_error_frames_reach_the_supervision(
     # above: the stop is abrupt here, and a position is latched at its SYNC's time stamp,
     # which under emulation the drives' process handles tens of ms late, so the last two
     # positions may both come from the deceleration while the statusword is the present one.)
-    assert final_states(run.trace, robot_wire[0]) == ["SWITCH_ON_DISABLED"] * len(robot_wire[0])
+    assert final_states(run.trace, robot_wire[0]) == [State.SWITCH_ON_DISABLED] * len(robot_wire[0])
