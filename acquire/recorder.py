@@ -27,6 +27,7 @@ import numpy as np
 
 from drivegain.errors import DrivegainError, InputError, UsageError
 from drivegain.formats.log import JOINT_STATES
+from drivegain.lifecycle import release_quietly
 
 log = logging.getLogger(__name__)
 
@@ -248,10 +249,8 @@ class Recorder:
     def abandon(self) -> None:
         """Write what is queued and close without finishing (the ``.part`` file stays)."""
         self._stop_thread()
-        try:
-            self._sink.close_unfinished()
-        except Exception as exc:  # on the way down: report, never raise
-            log.error("closing the unfinished log failed: %s", exc)
+        # on the way down: report, never raise
+        release_quietly(self._sink.close_unfinished, "closing the unfinished log", log)
 
     def _stop_thread(self) -> None:
         if self._closed:

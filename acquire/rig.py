@@ -10,7 +10,6 @@ import dataclasses
 import logging
 from contextlib import ExitStack
 from pathlib import Path
-from types import TracebackType
 from typing import Any
 
 import canopen
@@ -24,6 +23,7 @@ from drivegain.drivers.master import DriveEvent, Master, MasterHeartbeat, Timeou
 from drivegain.drivers.realtime import RealtimePolicy
 from drivegain.drivers.sim import SimConfig, SimulatedCell
 from drivegain.drivers.simprocess import SimulatedCellProcess, drives_in_child_process
+from drivegain.lifecycle import Closing, release_quietly
 
 log = logging.getLogger(__name__)
 
@@ -54,7 +54,7 @@ def realtime_policy(cfg: AcquisitionConfig) -> RealtimePolicy:
     return RealtimePolicy(gc_freeze=True, fifo_priority=prio)
 
 
-class Rig:
+class Rig(Closing):
     """The network, the optional simulated cell and the booted master of a configuration.
 
     A simulated cell runs in this process on the ``virtual`` bus (and in lockstep on a vcan
@@ -173,48 +173,25 @@ class Rig:
     def close(self) -> None:
         """Disable and release everything; never raises."""
         if self.master is not None:
-            try:
-                self.master.close()
-            except Exception as exc:
-                log.error("closing the master failed: %s", exc)
+            release_quietly(self.master.close, "closing the master", log)
             self.master = None
         if self.network is not None:
-            try:
-                self.network.disconnect()
-            except Exception as exc:
-                log.error("disconnecting the network failed: %s", exc)
+            release_quietly(self.network.disconnect, "disconnecting the network", log)
             self.network = None
         if self.cfg.bus.interface == IPC_INTERFACE:
             self._close_trace()  # before the drives go: on drivegain-ipc they are the bus
         if self.cell is not None:
-            try:
-                self.cell.stop()
-            except Exception as exc:
-                log.error("stopping the simulated drives failed: %s", exc)
+            release_quietly(self.cell.stop, "stopping the simulated drives", log)
             self.cell = None
         self._close_trace()  # after the drives: their last heartbeats are in it
         if self._realtime is not None:
-            try:
-                self._realtime.close()
-            except Exception as exc:
-                log.error("leaving the realtime policy failed: %s", exc)
+            release_quietly(self._realtime.close, "leaving the realtime policy", log)
             self._realtime = None
 
     def _close_trace(self) -> None:
         if self._trace is not None:
-            try:
-                self._trace.close()
-            except Exception as exc:
-                log.error("closing the CAN trace failed: %s", exc)
+            release_quietly(self._trace.close, "closing the CAN trace", log)
             self._trace = None
 
     def __enter__(self) -> Master:
         return self.open()
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()

@@ -24,7 +24,6 @@ from typing import Any
 
 import numpy as np
 
-from drivegain import __version__
 from drivegain.acquire.checks import check_bus_load, check_motion
 from drivegain.acquire.config import AcquisitionConfig
 from drivegain.acquire.pacing import LockstepPacer, Pacer, RealtimePacer
@@ -53,7 +52,7 @@ from drivegain.errors import DriveError, DrivegainError, OperatorStop
 from drivegain.excite.motion import Motion, Phase
 from drivegain.excite.motion import plan_stop as plan_stop_motion
 from drivegain.excite.trajectory import plan_excitation
-from drivegain.formats.log import EventLevel, RunMetadata, utc_now_iso
+from drivegain.formats.log import EventLevel, run_metadata, utc_now_iso
 from drivegain.formats.logwriter import LogWriter
 
 log = logging.getLogger(__name__)
@@ -265,14 +264,12 @@ class Session:
         assert self.motion is not None
         cfg, prep = self.cfg, self.prepared
         prep.request.out.parent.mkdir(parents=True, exist_ok=True)
-        meta = RunMetadata(
-            robot=self.robot.name,
-            run=prep.label,
-            payload=prep.payload.name if prep.payload is not None else "none",
-            joint_names=self.robot.joint_names,
-            sync_period_s=cfg.period_s,
-            started_at=utc_now_iso(),
-            drivegain_version=__version__,
+        meta = run_metadata(
+            self.robot,
+            prep.label,
+            prep.payload,
+            cfg.period_s,
+            utc_now_iso(),
             extra={
                 "clock": cfg.clock,
                 "bus_interface": cfg.bus.interface,

@@ -109,27 +109,32 @@ class Supervisor:
         if self._last_setpoint is not None:
             err = np.abs(self._last_setpoint - pos)
             np.maximum(self.max_following_error, err, out=self.max_following_error)
-            over = err > self.following_error
-            if np.any(over):
-                j = int(np.flatnonzero(over)[0])
-                self._fault(
-                    j,
-                    f"following error {err[j]:.4f} rad above {self.following_error[j]:.4f} rad "
-                    f"at cycle {cycle}",
-                )
+            self._check_below(err, self.following_error, "following error", "rad", 4, cycle)
         if self._last_position is not None:
             dt = self.period_s if interval_s is None else max(interval_s, self.period_s)
             speed = np.abs(pos - self._last_position) / dt
-            over = speed > self.speed_limit
-            if np.any(over):
-                j = int(np.flatnonzero(over)[0])
-                self._fault(
-                    j,
-                    f"speed {speed[j]:.3f} rad/s above {self.speed_limit[j]:.3f} rad/s "
-                    f"at cycle {cycle}",
-                )
+            self._check_below(speed, self.speed_limit, "speed", "rad/s", 3, cycle)
         self._last_position = pos
         self._last_setpoint = np.array(setpoint, dtype=float)
+
+    def _check_below(
+        self,
+        value: np.ndarray,
+        limit: np.ndarray,
+        what: str,
+        unit: str,
+        decimals: int,
+        cycle: int,
+    ) -> None:
+        """Fault on the first joint whose ``value`` exceeds its ``limit`` (both in ``unit``)."""
+        over = value > limit
+        if np.any(over):
+            j = int(np.flatnonzero(over)[0])
+            self._fault(
+                j,
+                f"{what} {value[j]:.{decimals}f} {unit} above {limit[j]:.{decimals}f} {unit} "
+                f"at cycle {cycle}",
+            )
 
     def _fault(self, j: int, text: str) -> None:
         raise SupervisionFault(f"{self.names[j]}: {text}", node=self.node_ids[j])

@@ -42,7 +42,8 @@ from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from types import TracebackType
+
+from drivegain.lifecycle import Closing
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_REF = "c03ea6b"
@@ -121,7 +122,7 @@ def comparison_line(name: str, now: Measure, base: Measure | None) -> str:
     )
 
 
-class BaselineInstall:
+class BaselineInstall(Closing):
     """REF installed in a temporary venv (a context manager; see the module docstring)."""
 
     def __init__(self, ref: str = DEFAULT_REF, repo: Path = REPO) -> None:
@@ -134,16 +135,12 @@ class BaselineInstall:
         try:
             self._install()
         except BaseException:
-            shutil.rmtree(self.root, ignore_errors=True)
+            self.close()
             raise
         return self
 
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
+    def close(self) -> None:
+        """Remove the temporary folder (venv and all)."""
         shutil.rmtree(self.root, ignore_errors=True)
 
     def command(self, script: str) -> list[str]:

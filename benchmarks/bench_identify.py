@@ -97,7 +97,7 @@ def _baseline_seconds() -> float:
 def _write_sim_logs(folder: Path, seconds: float, rate: float, seed: int) -> tuple[Path, Path]:
     from drivegain.config import load_payload, load_robot, load_truth, resource_path
     from drivegain.dynamics.model import build_model
-    from drivegain.formats.log import RunMetadata
+    from drivegain.formats.log import run_metadata
     from drivegain.formats.logwriter import write_run
     from drivegain.identify.synth import exciting_sum_of_sines, simulate_run
 
@@ -129,14 +129,7 @@ def _write_sim_logs(folder: Path, seconds: float, rate: float, seed: int) -> tup
         q_m = np.concatenate([p.q for p in sim_parts])
         cur = np.concatenate([p.current_reference for p in sim_parts])
         traj = {"fourier": {"base_frequency_hz": 0.1, "a": [[0.0] * 5] * 6, "b": [[0.0] * 5] * 6}}
-        meta = RunMetadata(
-            robot=robot.name,
-            run=label,
-            payload="none" if pay is None else pay.name,
-            joint_names=robot.joint_names,
-            sync_period_s=1.0 / rate,
-            started_at="2024-01-01T00:00:00.000Z",
-        )
+        meta = run_metadata(robot, label, pay, 1.0 / rate, "2024-01-01T00:00:00.000Z")
         path = folder / f"{label}-{seconds:g}s-{rate:g}Hz.mcap"
         write_run(
             path,

@@ -61,6 +61,7 @@ from drivegain.drivers.statewalk import StateWalker
 from drivegain.drivers.supervisor import ERROR_FRAMES_PER_S, DriveEvent, Supervisor
 from drivegain.errors import BusError, ConfigError, DriveError, UsageError
 from drivegain.formats.log import EventLevel
+from drivegain.lifecycle import Closing
 
 __all__ = [
     "ERROR_FRAMES_PER_S",
@@ -81,7 +82,7 @@ _NMT_PRE_OPERATIONAL = 0x80
 _NMT_RESET_COMMUNICATION = 0x82
 
 
-class Master:
+class Master(Closing):
     """CiA 402 drives of one robot, cyclic synchronous position.
 
     Parameters
@@ -558,9 +559,6 @@ class Master:
 
     def __enter__(self) -> Master:
         return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
     def _drop_in_flight(self, why: str) -> None:
         """Give up the pipelined cycle in flight, with a warning event."""

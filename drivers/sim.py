@@ -51,6 +51,7 @@ from drivegain.drivers.simconfig import SimConfig
 from drivegain.drivers.simdrive import NmtState, SimDrive
 from drivegain.drivers.simtime import LockstepClock
 from drivegain.errors import ConfigError, DriveError
+from drivegain.lifecycle import Running, release_quietly
 
 logger = logging.getLogger(__name__)
 
@@ -120,7 +121,7 @@ class FaultRecord:
 LOCKSTEP_INTERFACES = ("virtual", "socketcan")
 
 
-class SimulatedCell:
+class SimulatedCell(Running):
     """Simulated drives (canopen LocalNodes) and robot physics on a CAN channel.
 
     Parameters
@@ -281,18 +282,10 @@ class SimulatedCell:
             self.clock.lockstep.detach("drives")
         self.clock.stop()
         if self._network is not None:
-            try:
-                self._network.disconnect()
-            except Exception as exc:
-                logger.warning("simulated cell: disconnect failed: %s", exc)
+            release_quietly(
+                self._network.disconnect, "simulated cell: disconnect", logger, logging.WARNING
+            )
             self._network = None
-
-    def __enter__(self) -> SimulatedCell:
-        self.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
 
     # --- results --------------------------------------------------------------------------------
     @property

@@ -25,7 +25,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 from drivegain.drivers.objects import EmcyCode
-from drivegain.drivers.simtime import LockstepClock
+from drivegain.drivers.simtime import LockstepClock, Schedule, wait_until_due
 
 if TYPE_CHECKING:
     from drivegain.drivers.sim import SimulatedCell
@@ -63,7 +63,7 @@ class WallTimer:
 
     def __init__(self, guard: Callable[..., None]):
         self._guard = guard
-        self._heap: list[tuple[float, int, Callable[[], None]]] = []
+        self._heap: Schedule = []
         self._cond = threading.Condition()
         self._seq = itertools.count()
         self._stopped = False
@@ -84,15 +84,13 @@ class WallTimer:
         if self._thread.is_alive() and self._thread is not threading.current_thread():
             self._thread.join(2.0)
 
+    def _is_stopped(self) -> bool:
+        return self._stopped
+
     def _run(self) -> None:
         while True:
             with self._cond:
-                while not self._stopped:
-                    now = time.monotonic()
-                    if self._heap and self._heap[0][0] <= now:
-                        break
-                    self._cond.wait(self._heap[0][0] - now if self._heap else None)
-                if self._stopped:
+                if not wait_until_due(self._cond, self._heap, time.monotonic, self._is_stopped):
                     return
                 _, _, fn = heapq.heappop(self._heap)
             self._guard(fn)

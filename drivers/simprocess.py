@@ -38,7 +38,6 @@ import weakref
 from contextlib import ExitStack
 from multiprocessing.connection import Connection
 from pathlib import Path
-from types import TracebackType
 
 from drivegain import errors as errs
 from drivegain.config.robot import Robot
@@ -48,6 +47,7 @@ from drivegain.drivers.ipcbus import INTERFACE
 from drivegain.drivers.realtime import RealtimePolicy
 from drivegain.drivers.sim import FaultRecord, SimConfig, SimulatedCell
 from drivegain.errors import ConfigError, DriveError
+from drivegain.lifecycle import Running
 
 #: How long the child may take to import, build the simulation and listen, s.
 START_TIMEOUT_S = 60.0
@@ -174,7 +174,7 @@ def _error(kind: str, message: str) -> errs.DrivegainError:
     return DriveError(message)
 
 
-class SimulatedCellProcess:
+class SimulatedCellProcess(Running):
     """A :class:`~drivegain.drivers.sim.SimulatedCell` served from a child process.
 
     Parameters
@@ -303,18 +303,6 @@ class SimulatedCellProcess:
     def fault_log(self) -> list[FaultRecord]:
         """Injected faults that took effect (known once the child has stopped)."""
         return list(self._faults)
-
-    def __enter__(self) -> SimulatedCellProcess:
-        self.start()
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.stop()
 
 
 if __name__ == "__main__":

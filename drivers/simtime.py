@@ -54,6 +54,41 @@ HANG_S = 30.0
 #: Wall-clock slice a lockstep wait sleeps while frames are in flight, s.
 _POLL_S = 0.0005
 
+#: Scheduled actions, a heap of (due time in s, sequence number, action).
+Schedule = list[tuple[float, int, Callable[[], None]]]
+
+
+def wait_until_due(
+    cond: threading.Condition,
+    heap: Schedule,
+    now: Callable[[], float],
+    stopped: Callable[[], bool],
+) -> bool:
+    """With ``cond`` held, wait until the earliest action of ``heap`` is due.
+
+    Parameters
+    ----------
+    cond
+        The condition notified when ``heap`` changes or the timer stops (held by the caller).
+    heap
+        The scheduled actions.
+    now
+        The timer's clock, s.
+    stopped
+        Whether the timer was stopped.
+
+    Returns
+    -------
+    bool
+        True when an action is due (still on the heap), False once the timer is stopped.
+    """
+    while not stopped():
+        t = now()
+        if heap and heap[0][0] <= t:
+            return True
+        cond.wait(heap[0][0] - t if heap else None)
+    return False
+
 
 class Flag(Protocol):
     """What a wait waits for (a :class:`threading.Event`)."""
@@ -266,7 +301,7 @@ class LockstepClock:
         self._advance = threading.RLock()  # actions fire in time order, one thread at a time
         self._now = 0.0
         self._last_sync = 0.0  # the first SYNC is one period after power-on, as before any jump
-        self._heap: list[tuple[float, int, Callable[[], None]]] = []
+        self._heap: Schedule = []
         self._seq = itertools.count()
         self._parties: list[_Party] = []
         self._met = False  # two parties were attached at once
@@ -400,13 +435,7 @@ class LockstepClock:
     def _run_free(self) -> None:
         while True:
             with self._lock:
-                while not self._closed:
-                    now = self.now()
-                    if self._heap and self._heap[0][0] <= now:
-                        break
-                    wait = self._heap[0][0] - now if self._heap else None
-                    self._changed.wait(wait)
-                if self._closed:
+                if not wait_until_due(self._changed, self._heap, self.now, lambda: self._closed):
                     return
             self.advance_to(self.now())
 

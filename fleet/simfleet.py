@@ -23,7 +23,7 @@ from drivegain.config.robot import WristFriction
 from drivegain.config.truth import Truth
 from drivegain.dynamics.model import build_model
 from drivegain.errors import InputError
-from drivegain.formats.log import RunMetadata
+from drivegain.formats.log import run_metadata
 from drivegain.formats.logwriter import write_run
 from drivegain.identify.blas import limited_blas_threads
 from drivegain.identify.prepare import bases_for_forms
@@ -181,14 +181,8 @@ def write_fleet(
                     "a": exc.a.tolist(),
                     "b": exc.b.tolist(),
                 }
-                meta = RunMetadata(
-                    robot=robot.name,
-                    run=label,
-                    payload=pay.name if pay is not None else "none",
-                    joint_names=robot.joint_names,
-                    sync_period_s=1.0 / rate_hz,
-                    started_at=f"{date}T08:00:00.000Z",
-                    extra={"robot_id": rid},
+                meta = run_metadata(
+                    robot, label, pay, 1.0 / rate_hz, f"{date}T08:00:00.000Z", {"robot_id": rid}
                 )
                 path = folder / "logs" / rid / name / f"{label}.mcap"
                 path.parent.mkdir(parents=True, exist_ok=True)

@@ -17,10 +17,14 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from enum import StrEnum
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from drivegain import __version__
 from drivegain.errors import DataError, UsageError
+
+if TYPE_CHECKING:
+    from drivegain.config.payload import Payload
+    from drivegain.config.robot import Robot
 
 FORMAT_VERSION = "1"
 JOINT_STATES = "/joint_states"
@@ -124,9 +128,61 @@ class RunMetadata:
         return record
 
 
+def run_metadata(
+    robot: Robot,
+    run: str,
+    payload: Payload | None,
+    sync_period_s: float,
+    started_at: str,
+    extra: dict[str, str] | None = None,
+) -> RunMetadata:
+    """The ``drivegain.run`` record of a run of ``robot`` carrying ``payload``.
+
+    Parameters
+    ----------
+    robot
+        The robot: its name and joint names go into the record.
+    run
+        ``unloaded``, ``loaded`` or a free label.
+    payload
+        The payload carried, or ``None`` (recorded as ``none``).
+    sync_period_s
+        SYNC (sample) period, s.
+    started_at
+        ISO 8601 UTC time of the first cycle (:func:`utc_iso`, :func:`utc_now_iso`).
+    extra
+        More string keys (see :class:`RunMetadata`).
+
+    Raises
+    ------
+    DataError
+        Duplicate joint names or a period that is not positive.
+    UsageError
+        ``extra`` reuses a reserved key or holds a value that is not a string.
+    """
+    return RunMetadata(
+        robot=robot.name,
+        run=run,
+        payload=payload.name if payload is not None else "none",
+        joint_names=robot.joint_names,
+        sync_period_s=sync_period_s,
+        started_at=started_at,
+        extra={} if extra is None else extra,
+    )
+
+
+def utc_iso(epoch_s: float) -> str:
+    """``epoch_s`` (s since the Unix epoch) as ISO 8601 UTC with milliseconds, ``...Z``."""
+    return _iso_z(datetime.fromtimestamp(epoch_s, UTC))
+
+
 def utc_now_iso() -> str:
     """The current time as ISO 8601 UTC (second resolution is enough for a run's start)."""
-    return datetime.now(UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
+    return _iso_z(datetime.now(UTC))
+
+
+def _iso_z(when: datetime) -> str:
+    return when.isoformat(timespec="milliseconds").replace("+00:00", "Z")
 
 
 def _vector_schema(description: str) -> dict[str, Any]:

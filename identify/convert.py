@@ -23,18 +23,16 @@ import hashlib
 import json
 import math
 from array import array
-from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
 
-from drivegain import __version__
 from drivegain.config.payload import Payload, load_payload
 from drivegain.config.robot import Robot, load_robot
 from drivegain.dynamics.transmission import motor_to_joint
 from drivegain.errors import DataError, InputError
 from drivegain.fileio import reading
-from drivegain.formats.log import RunMetadata
+from drivegain.formats.log import run_metadata, utc_iso
 from drivegain.formats.logwriter import write_run
 
 _DELIMITERS = (",", ";", "\t")
@@ -223,17 +221,8 @@ def convert_csv(
         )
     else:
         extra["current_unit"] = "A"
-    started = datetime.fromtimestamp(pos_path.stat().st_mtime, UTC)
-    meta = RunMetadata(
-        robot=rob.name,
-        run=run,
-        payload=pay.name if pay is not None else "none",
-        joint_names=rob.joint_names,
-        sync_period_s=1.0 / rate_hz,
-        started_at=started.isoformat(timespec="milliseconds").replace("+00:00", "Z"),
-        drivegain_version=__version__,
-        extra=extra,
-    )
+    mtime = pos_path.stat().st_mtime
+    meta = run_metadata(rob, run, pay, 1.0 / rate_hz, utc_iso(mtime), extra)
     attachments: list[tuple[str, str, bytes]] = []
     if rob.source is not None and Path(rob.source).is_file():
         src = Path(rob.source)
@@ -242,7 +231,7 @@ def convert_csv(
         src = Path(pay.source)
         attachments.append((src.name, "application/toml", src.read_bytes()))
     t = np.arange(n_samples) / rate_hz
-    start_ns = int(started.timestamp()) * 1_000_000_000
+    start_ns = int(mtime) * 1_000_000_000
     log_time = start_ns + np.rint(np.arange(n_samples) * (1e9 / rate_hz)).astype(np.int64)
     return write_run(
         out_path,

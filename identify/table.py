@@ -27,18 +27,16 @@ import hashlib
 import json
 import math
 from dataclasses import dataclass
-from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
 
-from drivegain import __version__
 from drivegain.config.payload import Payload, load_payload
 from drivegain.config.robot import Robot, load_robot
 from drivegain.dynamics.transmission import motor_to_joint
 from drivegain.errors import DataError, InputError
 from drivegain.fileio import check_output
-from drivegain.formats.log import RunMetadata
+from drivegain.formats.log import run_metadata, utc_iso
 from drivegain.formats.logwriter import write_run
 
 #: Seconds per unit of the time column.
@@ -322,22 +320,13 @@ def convert_table(
         "sync_period_source": "mean step of the time column",
         "started_at_source": "modification time of the table",
     }
-    started = datetime.fromtimestamp(tab.path.stat().st_mtime, UTC)
-    meta = RunMetadata(
-        robot=rob.name,
-        run=run,
-        payload=pay.name if pay is not None else "none",
-        joint_names=rob.joint_names,
-        sync_period_s=period,
-        started_at=started.isoformat(timespec="milliseconds").replace("+00:00", "Z"),
-        drivegain_version=__version__,
-        extra=extra,
-    )
+    mtime = tab.path.stat().st_mtime
+    meta = run_metadata(rob, run, pay, period, utc_iso(mtime), extra)
     attachments: list[tuple[str, str, bytes]] = []
     for src in (rob.source, None if pay is None else pay.source):
         if src is not None and Path(src).is_file():
             attachments.append((Path(src).name, "application/toml", Path(src).read_bytes()))
-    start_ns = int(started.timestamp()) * 1_000_000_000
+    start_ns = int(mtime) * 1_000_000_000
     return write_run(
         out_path,
         meta,

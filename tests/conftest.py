@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
+from typing import Any
 
+import numpy as np
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
@@ -24,6 +26,63 @@ def single_blas_thread() -> Iterator[None]:
 
     with limited_blas_threads(1):
         yield
+
+
+def exact_prepared(
+    model: Any,
+    truth: Any,
+    columns: Sequence[str],
+    t: np.ndarray,
+    q: np.ndarray,
+    qd: np.ndarray,
+    qdd: np.ndarray,
+    *,
+    label: str,
+    payload: Any = None,
+    friction: Any = None,
+    period_s: float | None = None,
+) -> Any:
+    """A noise-free run along the exactly tracked ``q, qd, qdd`` (times ``t``, s): the true
+    robot's currents (:func:`simulate_run`, wrist ``friction``), prepared with the exact
+    derivatives (:func:`prepare_exact`, no filter)."""
+    from drivegain.identify.prepare import prepare_exact
+    from drivegain.identify.synth import simulate_run
+
+    sim = simulate_run(model, truth, q, qd, qdd, payload=payload, friction=friction)
+    return prepare_exact(
+        model,
+        columns,
+        label=label,
+        t=t,
+        q=q,
+        qd=qd,
+        qdd=qdd,
+        current=sim.current_reference,
+        payload=payload,
+        period_s=period_s,
+    )
+
+
+@pytest.fixture(scope="session")
+def simulate_exact() -> Callable[..., Any]:
+    """:func:`exact_prepared`, as
+    ``simulate_exact(model, truth, columns, t, q, qd, qdd, label=..., payload=...)``."""
+    return exact_prepared
+
+
+def write_table_csv(path: Path, data: dict[str, np.ndarray]) -> Path:
+    """The columns ``data`` (name → values) as a CSV table with a header row, at ``path``."""
+    names = list(data)
+    rows = np.column_stack([data[k] for k in names])
+    lines = [",".join(names)] + [",".join(repr(float(v)) for v in r) for r in rows]
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+@pytest.fixture(scope="session")
+def table_csv() -> Callable[[Path, dict[str, np.ndarray]], Path]:
+    """:func:`write_table_csv`: ``table_csv(path, {"time": t, "q1": ..., ...})``."""
+    return write_table_csv
 
 
 @pytest.fixture(scope="session")

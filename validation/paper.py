@@ -58,19 +58,18 @@ def write_logs(world: World, runs: Sequence[SimRun], folder: Path) -> list[Path]
 
     Returns the paths of the logs, one per run, named after the run's label in ``folder``.
     """
-    from drivegain.formats.log import RunMetadata
+    from drivegain.formats.log import run_metadata
     from drivegain.formats.logwriter import write_run
 
     paths = []
     for run in runs:
-        meta = RunMetadata(
-            robot=world.robot.name,
-            run=run.label,
-            payload="none" if run.payload is None else run.payload.name,
-            joint_names=world.robot.joint_names,
-            sync_period_s=1.0 / world.rate_hz,
-            started_at="2012-07-11T00:00:00.000Z",
-            extra={"source": "benchmarks/validate.py (simulated directly, no bus)"},
+        meta = run_metadata(
+            world.robot,
+            run.label,
+            run.payload,
+            1.0 / world.rate_hz,
+            "2012-07-11T00:00:00.000Z",
+            {"source": "benchmarks/validate.py (simulated directly, no bus)"},
         )
         paths.append(
             write_run(

@@ -140,6 +140,15 @@ def wait_for_cycles(part: Path, proc: subprocess.Popen[bytes], cycles: int) -> i
     raise AssertionError("the run did not get going")
 
 
+def start_until(
+    cfg: Path, trajectory: Path, out: Path, cycles: int, *, new_session: bool = False
+) -> tuple[subprocess.Popen[bytes], int]:
+    """:func:`start_acquire`, then :func:`wait_for_cycles` on the run's ``.part`` beside
+    ``out``: the process, and the cycles flushed when it got going."""
+    proc = start_acquire(cfg, trajectory, out, new_session=new_session)
+    return proc, wait_for_cycles(out.with_name(out.name + ".part"), proc, cycles)
+
+
 def assert_at_rest(position: np.ndarray, period_s: float, cycles: int = 20) -> None:
     """The logged joint positions (cycles, n), rad, show a robot at rest over the last cycles.
 
@@ -155,10 +164,13 @@ def assert_at_rest(position: np.ndarray, period_s: float, cycles: int = 20) -> N
 
 @pytest.fixture
 def acquire_cli() -> SimpleNamespace:
-    """``start`` and ``wait_for_cycles`` of a ``drivegain acquire`` subprocess, and
-    ``assert_at_rest`` for its log."""
+    """``start``, ``wait_for_cycles`` and both at once (``start_until``) of a ``drivegain
+    acquire`` subprocess, and ``assert_at_rest`` for its log."""
     return SimpleNamespace(
-        start=start_acquire, wait_for_cycles=wait_for_cycles, assert_at_rest=assert_at_rest
+        start=start_acquire,
+        wait_for_cycles=wait_for_cycles,
+        start_until=start_until,
+        assert_at_rest=assert_at_rest,
     )
 
 

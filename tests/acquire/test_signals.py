@@ -22,10 +22,8 @@ def test_sigterm_stops_safely_and_finishes_the_log(
     acquire_cli: SimpleNamespace,
 ) -> None:
     out = tmp_path / "run.mcap"
-    proc = acquire_cli.start(
-        make_config(acquisition="flush_interval_s = 0.2"), long_trajectory, out
-    )
-    acquire_cli.wait_for_cycles(out.with_name("run.mcap.part"), proc, 600)
+    cfg = make_config(acquisition="flush_interval_s = 0.2")
+    proc, _ = acquire_cli.start_until(cfg, long_trajectory, out, 600)
     proc.send_signal(signal.SIGTERM)
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 0, err.decode()
@@ -55,10 +53,8 @@ def test_sigkill_leaves_a_part_with_every_flushed_cycle(
 ) -> None:
     out = tmp_path / "run.mcap"
     part = out.with_name("run.mcap.part")
-    proc = acquire_cli.start(
-        make_config(acquisition="flush_interval_s = 0.2"), long_trajectory, out
-    )
-    seen = acquire_cli.wait_for_cycles(part, proc, 500)
+    cfg = make_config(acquisition="flush_interval_s = 0.2")
+    proc, seen = acquire_cli.start_until(cfg, long_trajectory, out, 500)
     proc.kill()
     proc.wait(timeout=30)
     assert proc.returncode == -signal.SIGKILL

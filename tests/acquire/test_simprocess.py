@@ -62,6 +62,14 @@ def _group_alive(pgid: int) -> list[int]:
     return alive
 
 
+def _assert_group_ends(pgid: int, timeout: float = 10.0) -> None:
+    """Every process of the group ends within ``timeout`` seconds."""
+    deadline = time.monotonic() + timeout
+    while _group_alive(pgid) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not _group_alive(pgid)
+
+
 def _ipc_config(make_config: Callable[..., Path]) -> Path:
     """Drives in a child process, flushed often (for runs killed midway).
 
@@ -163,18 +171,15 @@ def test_a_signal_to_the_process_group_still_stops_the_robot_safely(
     """Ctrl-C or a service stop reaches the drives' process too: it keeps serving until the
     master has decelerated and disabled them."""
     out = tmp_path / "run.mcap"
-    proc = acquire_cli.start(_ipc_config(make_config), long_trajectory, out, new_session=True)
-    acquire_cli.wait_for_cycles(out.with_name("run.mcap.part"), proc, 400)
+    cfg = _ipc_config(make_config)
+    proc, _ = acquire_cli.start_until(cfg, long_trajectory, out, 400, new_session=True)
     os.killpg(proc.pid, signal.SIGTERM)
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 0, err.decode()
     log = read_run(out)
     assert log.events[-1]["text"].startswith("operator stop (SIGTERM): robot at rest")
     acquire_cli.assert_at_rest(log.position, log.sync_period_s)
-    deadline = time.monotonic() + 10
-    while _group_alive(proc.pid) and time.monotonic() < deadline:
-        time.sleep(0.1)
-    assert not _group_alive(proc.pid)
+    _assert_group_ends(proc.pid)
 
 
 def test_the_drives_process_ends_when_the_master_is_killed(
@@ -184,15 +189,12 @@ def test_the_drives_process_ends_when_the_master_is_killed(
     acquire_cli: SimpleNamespace,
 ) -> None:
     out = tmp_path / "run.mcap"
-    proc = acquire_cli.start(_ipc_config(make_config), long_trajectory, out, new_session=True)
-    acquire_cli.wait_for_cycles(out.with_name("run.mcap.part"), proc, 200)
+    cfg = _ipc_config(make_config)
+    proc, _ = acquire_cli.start_until(cfg, long_trajectory, out, 200, new_session=True)
     assert len(_group_alive(proc.pid)) == 2  # the master and the drives
     proc.kill()
     proc.communicate(timeout=30)
-    deadline = time.monotonic() + 10
-    while _group_alive(proc.pid) and time.monotonic() < deadline:
-        time.sleep(0.1)
-    assert not _group_alive(proc.pid)
+    _assert_group_ends(proc.pid)
     assert read_run(out.with_name("run.mcap.part")).truncated
 
 
@@ -209,8 +211,7 @@ def test_killed_master_the_drives_stop_the_robot_on_their_own(
     ends."""
     path = make_config(clock="realtime", interface="drivegain-ipc", acquisition=RELAXED)
     out = tmp_path / "run.mcap"
-    proc = acquire_cli.start(path, long_trajectory, out, new_session=True)
-    acquire_cli.wait_for_cycles(out.with_name("run.mcap.part"), proc, 400)
+    proc, _ = acquire_cli.start_until(path, long_trajectory, out, 400, new_session=True)
     assert len(_group_alive(proc.pid)) == 2  # the master and the drives
     proc.kill()
     # the drives' process holds the stderr pipe until it ends: generous bound, against a hang
@@ -221,10 +222,7 @@ def test_killed_master_the_drives_stop_the_robot_on_their_own(
     assert len({line.split(":")[0] for line in timeouts}) == 6, text  # every drive noticed
     assert all("no heartbeat of node 127 for 6000 ms" in line for line in timeouts)
     assert "robot at rest after the master left (largest joint speed 0 rad/s" in text, text
-    deadline = time.monotonic() + 10
-    while _group_alive(proc.pid) and time.monotonic() < deadline:
-        time.sleep(0.1)
-    assert not _group_alive(proc.pid)
+    _assert_group_ends(proc.pid)
 
 
 def test_a_child_that_cannot_start_is_a_clear_error(

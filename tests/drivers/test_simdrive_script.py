@@ -32,6 +32,10 @@ class Probe:
         self.send(cob, data)
         return self.recv()
 
+    def expect(self, cob: int, request: str, answer_cob: int, answer: str) -> None:
+        """Sends ``request`` (hex); the next frame must be ``answer`` (hex) on ``answer_cob``."""
+        assert self.exchange(cob, h(request)) == (answer_cob, h(answer))
+
     def nothing(self, timeout: float = 0.05) -> bool:
         return self.bus.recv(timeout) is None
 
@@ -59,6 +63,19 @@ def cell_factory(tx40, channel):
         assert cell.errors == []
 
 
+@pytest.fixture
+def booted(probe, cell_factory):
+    """Starts a cell (``booted(sim)``) and takes its six boot-up frames off the probe."""
+
+    def start(sim: SimConfig | None = None) -> SimulatedCell:
+        cell = cell_factory(sim)
+        for _ in range(6):
+            probe.recv()
+        return cell
+
+    return start
+
+
 def h(text: str) -> bytes:
     return bytes.fromhex(text)
 
@@ -69,71 +86,44 @@ def test_power_on_sends_boot_up_of_every_node(probe, cell_factory):
     assert probe.nothing()  # no heartbeat until 0x1017 is written
 
 
-def test_sdo_answers_and_aborts(probe, cell_factory):
-    cell_factory()
-    for _ in range(6):
-        probe.recv()
+SDO_ANSWERS = [
     # Device type of node 3: CiA 402 servo drive.
-    assert probe.exchange(0x603, h("40 00 10 00 00 00 00 00")) == (
-        0x583,
-        h("43 00 10 00 92 01 02 00"),
-    )
+    (0x603, "40 00 10 00 00 00 00 00", 0x583, "43 00 10 00 92 01 02 00"),
     # Commissioned values: rated current of joint 1 (6000 mA), encoder of joint 3 (65536).
-    assert probe.exchange(0x601, h("40 75 60 00 00 00 00 00")) == (
-        0x581,
-        h("43 75 60 00 70 17 00 00"),
-    )
-    assert probe.exchange(0x603, h("40 8F 60 01 00 00 00 00")) == (
-        0x583,
-        h("43 8F 60 01 00 00 01 00"),
-    )
+    (0x601, "40 75 60 00 00 00 00 00", 0x581, "43 75 60 00 70 17 00 00"),
+    (0x603, "40 8F 60 01 00 00 00 00", 0x583, "43 8F 60 01 00 00 01 00"),
     # Mapping a valid TPDO: "not in the present device state" (0x08000022).
-    assert probe.exchange(0x602, h("23 00 1A 01 20 00 64 60")) == (
-        0x582,
-        h("80 00 1A 01 22 00 00 08"),
-    )
+    (0x602, "23 00 1A 01 20 00 64 60", 0x582, "80 00 1A 01 22 00 00 08"),
     # Unsupported mode of operation 1: value range exceeded (0x06090030).
-    assert probe.exchange(0x602, h("2F 60 60 00 01 00 00 00")) == (
-        0x582,
-        h("80 60 60 00 30 00 09 06"),
-    )
+    (0x602, "2F 60 60 00 01 00 00 00", 0x582, "80 60 60 00 30 00 09 06"),
     # Writing the statusword: read-only (0x06010002).
-    assert probe.exchange(0x602, h("2B 41 60 00 00 00 00 00")) == (
-        0x582,
-        h("80 41 60 00 02 00 01 06"),
-    )
+    (0x602, "2B 41 60 00 00 00 00 00", 0x582, "80 41 60 00 02 00 01 06"),
     # Unknown object: 0x06020000.
-    assert probe.exchange(0x602, h("40 00 50 00 00 00 00 00")) == (
-        0x582,
-        h("80 00 50 00 00 00 02 06"),
-    )
+    (0x602, "40 00 50 00 00 00 00 00", 0x582, "80 00 50 00 00 00 02 06"),
     # Mapping a non-mappable object (0x6075) into TPDO3 (disabled, empty): 0x06040041.
-    assert probe.exchange(0x602, h("23 02 1A 01 20 00 75 60")) == (
-        0x582,
-        h("80 02 1A 01 41 00 04 06"),
-    )
+    (0x602, "23 02 1A 01 20 00 75 60", 0x582, "80 02 1A 01 41 00 04 06"),
+]
 
 
-def test_nmt_reset_communication_reboots_the_node_and_stopped_nodes_are_silent(probe, cell_factory):
-    cell_factory()
-    for _ in range(6):
-        probe.recv()
+def test_sdo_answers_and_aborts(probe, booted):
+    booted()
+    for cob, request, answer_cob, answer in SDO_ANSWERS:
+        probe.expect(cob, request, answer_cob, answer)
+
+
+def test_nmt_reset_communication_reboots_the_node_and_stopped_nodes_are_silent(probe, booted):
+    booted()
     probe.send(0x000, h("82 04"))
     assert probe.recv() == (0x704, h("00"))
     probe.send(0x000, h("02 04"))  # NMT stop: no SDO any more
     probe.send(0x604, h("40 00 10 00 00 00 00 00"))
     assert probe.nothing()
     probe.send(0x000, h("80 04"))  # pre-operational: SDO again
-    assert probe.exchange(0x604, h("40 00 10 00 00 00 00 00")) == (
-        0x584,
-        h("43 00 10 00 92 01 02 00"),
-    )
+    probe.expect(0x604, "40 00 10 00 00 00 00 00", 0x584, "43 00 10 00 92 01 02 00")
 
 
-def test_state_machine_by_controlword(probe, cell_factory):
-    cell_factory()
-    for _ in range(6):
-        probe.recv()
+def test_state_machine_by_controlword(probe, booted):
+    booted()
     sw = (0x601, h("40 41 60 00 00 00 00 00"))
     assert probe.exchange(*sw) == (0x581, h("4B 41 60 00 40 02 00 00"))  # SWITCH_ON_DISABLED
     # Enable operation straight from SWITCH_ON_DISABLED is not a transition.
@@ -141,10 +131,7 @@ def test_state_machine_by_controlword(probe, cell_factory):
     assert probe.exchange(*sw)[1] == h("4B 41 60 00 40 02 00 00")
     steps = [("06 00", "31 02"), ("07 00", "33 02"), ("0F 00", "37 02"), ("02 00", "17 02")]
     for cw, status in steps:  # shutdown, switch on, enable (mode 0: not following), quick stop
-        assert probe.exchange(0x601, h(f"2B 40 60 00 {cw} 00 00")) == (
-            0x581,
-            h("60 40 60 00 00 00 00 00"),
-        )
+        probe.expect(0x601, f"2B 40 60 00 {cw} 00 00", 0x581, "60 40 60 00 00 00 00 00")
         assert probe.exchange(*sw) == (0x581, h(f"4B 41 60 00 {status} 00 00"))
     # Disable voltage ends the quick stop.
     probe.exchange(0x601, h("2B 40 60 00 00 00 00 00"))
@@ -156,10 +143,8 @@ def test_state_machine_by_controlword(probe, cell_factory):
     assert probe.exchange(*sw)[1] == h("4B 41 60 00 37 12 00 00")
 
 
-def test_synchronous_pdos(probe, cell_factory):
-    cell_factory()
-    for _ in range(6):
-        probe.recv()
+def test_synchronous_pdos(probe, booted):
+    booted()
     ok = h("60")
     # TPDO1 of node 1 (EDS default: statusword + position actual): make it synchronous.
     for frame in ("23 00 18 01 81 01 00 80", "2F 00 18 02 01 00 00 00", "23 00 18 01 81 01 00 00"):
@@ -195,10 +180,8 @@ def test_synchronous_pdos(probe, cell_factory):
     assert probe.recv() == (0x281, h("31 02 07"))
 
 
-def test_emcy_fault_and_fault_reset(probe, cell_factory):
-    cell_factory(SimConfig(faults=(FaultSpec(FaultKind.EMCY, node=2, at_s=0.0),)))
-    for _ in range(6):
-        probe.recv()
+def test_emcy_fault_and_fault_reset(probe, booted):
+    booted(SimConfig(faults=(FaultSpec(FaultKind.EMCY, node=2, at_s=0.0),)))
     probe.send(0x080, h("01"))  # the fault is due at the first SYNC
     # Following error 0x8611, error register: generic | device profile.
     assert probe.recv() == (0x082, h("11 86 21 00 00 00 00 00"))
@@ -214,17 +197,12 @@ def test_emcy_fault_and_fault_reset(probe, cell_factory):
     assert probe.exchange(0x602, h("40 03 10 01 00 00 00 00"))[1] == h("43 03 10 01 11 86 00 00")
 
 
-def test_heartbeat_consumer_time_out_sends_emcy_8130_and_faults(probe, cell_factory):
+def test_heartbeat_consumer_time_out_sends_emcy_8130_and_faults(probe, booted):
     """0x1016 sub 1 = producer 127 (the master) << 16 | 6 ms: monitoring starts with its first
     heartbeat; in lockstep each SYNC is 4 ms of simulated time, so the second SYNC after the last
     heartbeat passes the time-out."""
-    cell_factory()
-    for _ in range(6):
-        probe.recv()
-    assert probe.exchange(0x602, h("23 16 10 01 06 00 7F 00")) == (
-        0x582,
-        h("60 16 10 01 00 00 00 00"),
-    )
+    booted()
+    probe.expect(0x602, "23 16 10 01 06 00 7F 00", 0x582, "60 16 10 01 00 00 00 00")
     probe.send(0x080, h("01"))
     assert probe.nothing()  # not monitoring before the producer's first heartbeat
     probe.send(0x77F, h("05"))  # the master's heartbeat: NMT operational

@@ -8,6 +8,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -25,7 +26,6 @@ from drivegain.identify.convert import convert_csv
 from drivegain.identify.prepare import (
     PreparedRun,
     bases_for_forms,
-    prepare_exact,
     prepare_recording,
     stored_columns,
 )
@@ -163,7 +163,23 @@ def sim_log(world: World) -> Callable[..., Path]:
 
 
 @pytest.fixture(scope="session")
-def exact_run(world: World) -> Simulate:
+def run_logs(world: World, sim_log: Callable[..., Path]) -> Callable[..., dict[str, Path]]:
+    """Simulated logs ``{key}.mcap`` in a folder of runs a (unloaded, excitation 0), b (the
+    calibrated payload, excitation 1) and c (the validation payload, excitation 2):
+    ``run_logs(folder, {"a": seed, "b": seed, ...}, seconds=..., **sim_log options)``."""
+    runs = {"a": (0, None), "b": (1, world.payload), "c": (2, world.validation)}
+
+    def make(folder: Path, seeds: dict[str, int], **kw: Any) -> dict[str, Path]:
+        return {
+            key: sim_log(folder / f"{key}.mcap", runs[key][0], runs[key][1], seed, **kw)
+            for key, seed in seeds.items()
+        }
+
+    return make
+
+
+@pytest.fixture(scope="session")
+def exact_run(world: World, simulate_exact: Callable[..., PreparedRun]) -> Simulate:
     """A noise-free run with exact derivatives (no filter), prepared for the estimators."""
 
     def make(
@@ -177,17 +193,17 @@ def exact_run(world: World) -> Simulate:
     ) -> PreparedRun:
         t = np.arange(0.0, duration, 1.0 / rate)
         q, qd, qdd = world.excitations[which].evaluate(t)[:3]
-        sim = simulate_run(world.model, world.truth, q, qd, qdd, payload=payload, friction=friction)
-        return prepare_exact(
+        return simulate_exact(
             world.model,
+            world.truth,
             world.columns,
+            t,
+            q,
+            qd,
+            qdd,
             label=label,
-            t=t,
-            q=q,
-            qd=qd,
-            qdd=qdd,
-            current=sim.current_reference,
             payload=payload,
+            friction=friction,
             period_s=1.0 / BASE_HZ,
         )
 

@@ -272,15 +272,7 @@ def test_current_without_the_payload_is_diagnosed(feedforward, tmp_path, capsys)
 # Item 2: the converter, end to end
 
 
-def _table_csv(path: Path, data: dict[str, np.ndarray]) -> Path:
-    names = list(data)
-    rows = np.column_stack([data[k] for k in names])
-    lines = [",".join(names)] + [",".join(repr(float(v)) for v in r) for r in rows]
-    path.write_text("\n".join(lines) + "\n")
-    return path
-
-
-def test_converted_irregular_table_identifies(world, tmp_path: Path) -> None:
+def test_converted_irregular_table_identifies(world, table_csv, tmp_path: Path) -> None:
     """End to end: a table with 10/12 ms steps → logs → identify, gains within 1 %."""
     paths = {}
     for label, which, pay, seed in (("unloaded", 0, None, 1), ("loaded", 1, world.payload, 2)):
@@ -292,7 +284,7 @@ def test_converted_irregular_table_identifies(world, tmp_path: Path) -> None:
         data = {"time": t + 17.0}
         data |= {f"q{j + 1}": sim.q[:, j] for j in range(6)}
         data |= {f"v{j + 1}": sim.current_reference[:, j] for j in range(6)}
-        table = _table_csv(tmp_path / f"{label}.csv", data)
+        table = table_csv(tmp_path / f"{label}.csv", data)
         argv = ["convert", "table", "--input", str(table), "--time", "time", "--position", "q{}"]
         argv += ["--current-reference", "v{}", "--robot", str(ROBOT), "--run", label]
         if pay is not None:

@@ -20,12 +20,8 @@ PAYLOAD = resource_path("payloads/calibrated-4590g.toml")
 
 
 @pytest.fixture(scope="module")
-def logs(world, sim_log, tmp_path_factory) -> dict[str, Path]:
-    d = tmp_path_factory.mktemp("clogs")
-    return {
-        "a": sim_log(d / "a.mcap", 0, None, 21, seconds=20.0),
-        "b": sim_log(d / "b.mcap", 1, world.payload, 22, seconds=20.0),
-    }
+def logs(run_logs, tmp_path_factory) -> dict[str, Path]:
+    return run_logs(tmp_path_factory.mktemp("clogs"), {"a": 21, "b": 22}, seconds=20.0)
 
 
 def _identify(logs: dict[str, Path], out: Path, *extra: str) -> dict:

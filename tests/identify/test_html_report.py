@@ -24,11 +24,11 @@ CHROMIUM = os.environ.get("DRIVEGAIN_CHROMIUM") or shutil.which("chromium") or "
 
 
 @pytest.fixture(scope="module")
-def report(world, sim_log, tmp_path_factory: pytest.TempPathFactory) -> Path:
+def report(run_logs, tmp_path_factory: pytest.TempPathFactory) -> Path:
     d = tmp_path_factory.mktemp("html")
     # no encoder quantum, no trajectory attached
-    a = sim_log(d / "a.mcap", 0, None, 1, seconds=12.0, quantum=0.0, trajectory=False)
-    b = sim_log(d / "b.mcap", 1, world.payload, 2, seconds=12.0, quantum=0.0, trajectory=False)
+    logs = run_logs(d, {"a": 1, "b": 2}, seconds=12.0, quantum=0.0, trajectory=False)
+    a, b = logs["a"], logs["b"]
     out = d / "report"
     argv = ["identify", "--robot", str(resource_path("tx40.toml")), "--unloaded", str(a)]
     argv += ["--loaded", str(b), "--payload", str(resource_path("payloads/calibrated-4590g.toml"))]

@@ -20,14 +20,10 @@ PAYLOADS = {"b": "payloads/calibrated-4590g.toml", "c": "payloads/validation-168
 
 
 @pytest.fixture(scope="module")
-def logs(world, sim_log, tmp_path_factory) -> dict[str, Path]:
+def logs(run_logs, tmp_path_factory) -> dict[str, Path]:
     """Runs a (unloaded), b (calibrated payload) and c (validation payload), 20 s each."""
-    d = tmp_path_factory.mktemp("logs")
-    runs = {"a": (0, None), "b": (1, world.payload), "c": (2, world.validation)}
-    return {
-        key: sim_log(d / f"{key}.mcap", which, payload, 11 + which, seconds=20.0)
-        for key, (which, payload) in runs.items()
-    }
+    seeds = {"a": 11, "b": 12, "c": 13}
+    return run_logs(tmp_path_factory.mktemp("logs"), seeds, seconds=20.0)
 
 
 def _argv(logs: dict[str, Path], out: Path, unloaded: Path | None = None) -> list[str]:

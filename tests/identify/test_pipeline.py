@@ -18,13 +18,8 @@ VALIDATION = resource_path("payloads/validation-1686g.toml")
 
 
 @pytest.fixture(scope="module")
-def logs(world, sim_log, tmp_path_factory) -> dict[str, Path]:
-    d = tmp_path_factory.mktemp("logs")
-    return {
-        "a": sim_log(d / "a.mcap", 0, None, 1, seconds=30.0),
-        "b": sim_log(d / "b.mcap", 1, world.payload, 2, seconds=30.0),
-        "c": sim_log(d / "c.mcap", 2, world.validation, 3, seconds=30.0),
-    }
+def logs(run_logs, tmp_path_factory) -> dict[str, Path]:
+    return run_logs(tmp_path_factory.mktemp("logs"), {"a": 1, "b": 2, "c": 3}, seconds=30.0)
 
 
 def _identify_both(logs: dict[str, Path], *args: str | Path) -> int:

@@ -11,17 +11,16 @@ import pytest
 from drivegain.config.robot import WristFriction
 from drivegain.dynamics.model import build_model
 from drivegain.identify.pipeline import IdentifyOutcome, _summary
-from drivegain.identify.prepare import bases_for_forms, prepare_exact, stored_columns
+from drivegain.identify.prepare import bases_for_forms, stored_columns
 from drivegain.identify.procedure import Options, Problem, run_procedure
 from drivegain.identify.report import markdown_report, report_json
-from drivegain.identify.synth import simulate_run
 from drivegain.identify.units import parameter_unit
 
 NAMES = ["shoulder_pan", "shoulder_lift", "elbow_joint", "wrist_1", "wrist_2", "wrist_3_joint"]
 
 
 @pytest.fixture(scope="module")
-def uncoupled(world):
+def uncoupled(world, simulate_exact):
     """The TX-40 without its coupled wrist, joints renamed: identified from exact runs."""
     joints = tuple(replace(j, name=nm) for j, nm in zip(world.robot.joints, NAMES, strict=True))
     robot = replace(world.robot, couplings=(), joints=joints, name="uncoupled arm")
@@ -32,13 +31,9 @@ def uncoupled(world):
     runs = []
     for which, pay, label in ((0, None, "unloaded"), (1, world.payload, "loaded")):
         q, qd, qdd = world.excitations[which].evaluate(t)[:3]
-        sim = simulate_run(model, world.truth, q, qd, qdd, payload=pay)
         runs.append(
-            prepare_exact(
-                model, columns, label=label, t=t, q=q, qd=qd, qdd=qdd,
-                current=sim.current_reference, payload=pay,
-            )
-        )  # fmt: skip
+            simulate_exact(model, world.truth, columns, t, q, qd, qdd, label=label, payload=pay)
+        )
     problem = Problem(robot=robot, bases=bases, unloaded=runs[0], loaded=runs[1])
     result = run_procedure(problem, Options(friction=WristFriction.PHYSICAL))
     doc = report_json(result, robot, [], {})

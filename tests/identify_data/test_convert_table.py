@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -32,21 +33,15 @@ def _data(rows: int = 200, seed: int = 0) -> dict[str, np.ndarray]:
     }
 
 
-def _csv(path: Path, data: dict[str, np.ndarray]) -> Path:
-    names = list(data)
-    rows = np.column_stack([data[k] for k in names])
-    lines = [",".join(names)] + [",".join(repr(float(v)) for v in r) for r in rows]
-    path.write_text("\n".join(lines) + "\n")
-    return path
-
-
 def _cols(data: dict[str, np.ndarray], prefix: str) -> np.ndarray:
     return np.column_stack([data[f"{prefix}{j}"] for j in range(1, 7)])
 
 
-def test_csv_with_real_time_stamps_and_columns_by_name(tmp_path: Path) -> None:
+def test_csv_with_real_time_stamps_and_columns_by_name(
+    tmp_path: Path, table_csv: Callable[..., Path]
+) -> None:
     data = _data()
-    table = _csv(tmp_path / "run.csv", data)
+    table = table_csv(tmp_path / "run.csv", data)
     out = convert_table(
         table, ROBOT, time="time", position="q{}", current_reference="iref{}",
         current="i1,i2,i3,i4,i5,i6", setpoint="qs{}", out=tmp_path / "a.mcap",
@@ -63,10 +58,12 @@ def test_csv_with_real_time_stamps_and_columns_by_name(tmp_path: Path) -> None:
     assert log.meta["run"] == "unloaded" and log.meta["payload"] == "none"
 
 
-def test_columns_by_number_rows_and_time_window(tmp_path: Path) -> None:
+def test_columns_by_number_rows_and_time_window(
+    tmp_path: Path, table_csv: Callable[..., Path]
+) -> None:
     data = _data()
     names = list(data)
-    table = _csv(tmp_path / "run.csv", data)
+    table = table_csv(tmp_path / "run.csv", data)
     numbers = ",".join(str(names.index(f"iref{j}") + 1) for j in range(1, 7))
     out = convert_table(
         table, ROBOT, time="1", position="q{}", current_reference=numbers,
@@ -86,9 +83,9 @@ def test_columns_by_number_rows_and_time_window(tmp_path: Path) -> None:
     np.testing.assert_array_equal(log2.position, _cols(data, "q")[inside])
 
 
-def test_motor_side_positions_are_converted(tmp_path: Path) -> None:
+def test_motor_side_positions_are_converted(tmp_path: Path, table_csv: Callable[..., Path]) -> None:
     data = _data()
-    table = _csv(tmp_path / "run.csv", data)
+    table = table_csv(tmp_path / "run.csv", data)
     out = convert_table(
         table, ROBOT, time="time", position="q{}", current_reference="iref{}",
         motor_side=True, out=tmp_path / "a.mcap",
@@ -114,8 +111,8 @@ def test_parquet(tmp_path: Path) -> None:
     np.testing.assert_allclose(log.t, data["time"] - data["time"][0], atol=1e-9)
 
 
-def test_refuses_to_overwrite_a_log(tmp_path: Path, capsys) -> None:
-    table = _csv(tmp_path / "run.csv", _data())
+def test_refuses_to_overwrite_a_log(tmp_path: Path, table_csv: Callable[..., Path], capsys) -> None:
+    table = table_csv(tmp_path / "run.csv", _data())
     out = tmp_path / "a.mcap"
     out.write_bytes(b"precious")
     with pytest.raises(InputError, match="refusing to overwrite"):
@@ -129,8 +126,10 @@ def test_refuses_to_overwrite_a_log(tmp_path: Path, capsys) -> None:
     assert out.read_bytes() == b"precious"
 
 
-def test_unknown_column_is_one_line_naming_it(tmp_path: Path, capsys) -> None:
-    table = _csv(tmp_path / "run.csv", _data())
+def test_unknown_column_is_one_line_naming_it(
+    tmp_path: Path, table_csv: Callable[..., Path], capsys
+) -> None:
+    table = table_csv(tmp_path / "run.csv", _data())
     argv = ["convert", "table", "--input", str(table), "--time", "time", "--position", "pos{}"]
     argv += [
         "--current-reference",

@@ -7,6 +7,7 @@ diagonal current matrix on the coupled wrist) must not.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -24,31 +25,21 @@ from drivegain.identify.compare import (
     wtls_gains,
 )
 from drivegain.identify.design import Design, coupling_factor, make_design
-from drivegain.identify.prepare import prepare_exact
-from drivegain.identify.synth import simulate_run
+from drivegain.identify.prepare import PreparedRun
 from drivegain.validation.world import World
 
 RATE = 10.0  # Hz: exact derivatives need no filter, so few samples suffice
 
 
 @pytest.fixture(scope="module")
-def exact(world: World) -> tuple[Design, Design]:
+def exact(world: World, simulate_exact: Callable[..., PreparedRun]) -> tuple[Design, Design]:
     """Runs a and b along the shipped excitation, noise-free, exact derivatives."""
     t = np.arange(0.0, world.fourier.duration_s, 1.0 / RATE)
     q, qd, qdd, _ = world.fourier.evaluate(t)
     designs = []
     for label, payload in (("unloaded", None), ("loaded", world.payload)):
-        sim = simulate_run(world.model, world.truth, q, qd, qdd, payload=payload)
-        run = prepare_exact(
-            world.model,
-            world.columns,
-            label=label,
-            t=t,
-            q=q,
-            qd=qd,
-            qdd=qdd,
-            current=sim.current_reference,
-            payload=payload,
+        run = simulate_exact(
+            world.model, world.truth, world.columns, t, q, qd, qdd, label=label, payload=payload
         )
         designs.append(make_design(run, world.base, world.form, world.robot))
     return designs[0], designs[1]

@@ -7,8 +7,11 @@ run, a laptop without the vcan module) every test of this folder is skipped with
 
 from __future__ import annotations
 
+import signal
 import socket
+import subprocess
 from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -66,3 +69,26 @@ def open_vcan() -> Iterator[Callable[..., can.BusABC]]:
     yield open_
     for bus in buses:
         bus.shutdown()
+
+
+@contextmanager
+def _candump(args: list[str], out: Path, stop_timeout: float) -> Iterator[subprocess.Popen[bytes]]:
+    """``candump *args`` writing to the file ``out`` while the block runs; stopped with SIGINT
+    after it (killed if it has not ended within ``stop_timeout`` seconds)."""
+    with out.open("wb") as fh:
+        proc = subprocess.Popen(["candump", *args], stdout=fh)
+    try:
+        yield proc
+    finally:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(stop_timeout)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+@pytest.fixture(scope="session")
+def candump() -> Callable[..., Any]:
+    """Runs ``candump`` beside a test: ``with candump(args, out_file, stop_timeout) as proc:``."""
+    return _candump

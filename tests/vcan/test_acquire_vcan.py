@@ -13,8 +13,10 @@ import subprocess
 import sys
 import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -103,23 +105,15 @@ def trajectory(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 @pytest.fixture(scope="module")
-def runs(tmp_path_factory: pytest.TempPathFactory, trajectory: Path) -> dict[str, Run]:
+def runs(
+    tmp_path_factory: pytest.TempPathFactory, trajectory: Path, candump: Callable[..., Any]
+) -> dict[str, Run]:
     base = tmp_path_factory.mktemp("acquire-vcan")
     # candump beside the run, as a user watches the bus; the run records its own trace too
-    dump = base / "candump.log"
-    with dump.open("w") as fh:
-        candump = subprocess.Popen(["candump", "-L", "-r", str(4 << 20), "vcan0"], stdout=fh)
-        try:
-            time.sleep(2.0)  # let it open its socket (only frames after that are compared)
-            trace = ("--can-trace", str(base / "vcan" / "trace.log"))
-            got = {"vcan": acquire(base / "vcan", "socketcan", "vcan0", trajectory, trace)}
-        finally:
-            candump.send_signal(signal.SIGINT)
-            try:
-                candump.wait(30)
-            except subprocess.TimeoutExpired:
-                candump.kill()
-                candump.wait()
+    with candump(["-L", "-r", str(4 << 20), "vcan0"], base / "candump.log", 30):
+        time.sleep(2.0)  # let it open its socket (only frames after that are compared)
+        trace = ("--can-trace", str(base / "vcan" / "trace.log"))
+        got = {"vcan": acquire(base / "vcan", "socketcan", "vcan0", trajectory, trace)}
     if got["vcan"].status == 0:  # the reference is worth its minutes only then
         got["virtual"] = acquire(base / "virtual", "virtual", "vcan-test-reference", trajectory)
     return got

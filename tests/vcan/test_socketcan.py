@@ -7,12 +7,11 @@ import errno
 import os
 import re
 import shutil
-import signal
-import subprocess
 import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import can
 import pytest
@@ -132,19 +131,16 @@ _DROPS = re.compile(r"DROPCOUNT: dropped (\d+)")
 
 @pytest.mark.skipif(shutil.which("candump") is None, reason="can-utils (candump) not installed")
 def test_candump_beside_sees_the_same_frames(
-    open_vcan: Callable[..., can.BusABC], tmp_path: Path
+    open_vcan: Callable[..., can.BusABC], tmp_path: Path, candump: Callable[..., Any]
 ) -> None:
     tx, rx = open_vcan(), open_vcan()
     dump = tmp_path / "candump.out"
-    with dump.open("wb") as out:
-        candump = subprocess.Popen(
-            ["candump", "-L", "-d", "-r", str(4 * 1024 * 1024), CHANNEL], stdout=out
-        )
-    try:
+    args = ["-L", "-d", "-r", str(4 * 1024 * 1024), CHANNEL]
+    with candump(args, dump, 10) as dumping:
         # candump is listening once one of our start markers shows in its output
         deadline = time.monotonic() + WAIT_S
         while b"7FF#7374617274" not in dump.read_bytes():
-            assert candump.poll() is None, "candump exited"
+            assert dumping.poll() is None, "candump exited"
             assert time.monotonic() < deadline, "candump never saw a frame"
             tx.send(can.Message(arbitration_id=MARKER_ID, is_extended_id=False, data=b"start"))
             time.sleep(0.2)
@@ -158,13 +154,6 @@ def test_candump_beside_sees_the_same_frames(
         while b"7FF#656E64" not in dump.read_bytes():
             assert time.monotonic() < deadline + WAIT_S, "the end marker never reached candump"
             time.sleep(0.2)
-    finally:
-        candump.send_signal(signal.SIGINT)
-        try:
-            candump.wait(10)
-        except subprocess.TimeoutExpired:
-            candump.kill()
-            candump.wait()
 
     text = dump.read_text()
     drops = sum(int(n) for n in _DROPS.findall(text))
