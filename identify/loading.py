@@ -19,7 +19,6 @@ import dataclasses
 import functools
 import multiprocessing
 import os
-import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from multiprocessing.connection import Connection, wait
@@ -33,6 +32,7 @@ from drivegain.config.robot import WristFriction
 from drivegain.dynamics.model import RobotModel
 from drivegain.errors import IdentificationError, InputError
 from drivegain.identify.blas import limited_blas_threads
+from drivegain.identify.forked import fork_is_safe
 from drivegain.identify.prepare import (
     PreparedRun,
     bases_for_forms,
@@ -121,9 +121,7 @@ def _describe(progress: Progress, task: Any, text: str, total: int | None) -> No
 
 def _worker_count(specs: Sequence[RunSpec]) -> int:
     """Worker processes to use: 1 (none) for short logs or where a fork is not safe."""
-    if len(specs) < 2 or "fork" not in multiprocessing.get_all_start_methods():
-        return 1
-    if threading.active_count() > 1:  # a fork copies other threads' locks in any state
+    if len(specs) < 2 or not fork_is_safe():
         return 1
     try:
         size = sum(path.stat().st_size for path, _, _ in specs)

@@ -18,6 +18,11 @@ columns are weighted per drive (:func:`drivegain.identify.weighting.drive_noise_
 the gains' standard deviations come from a clustered sandwich covariance
 (:func:`drivegain.identify.wtls.wtls_covariance`).
 
+On long runs (:data:`PARALLEL_EQUATIONS`), the fits that do not need each other's results run
+two at a time, one in a forked child (:mod:`drivegain.identify.forked`): Case 1 beside the
+gains' estimation, the other friction form beside Case 2, validation and cross-validation.
+The results are identical to those of one process.
+
 Rows of one run and one joint are reduced once to a triangular factor; every estimator works on
 stacks of those small factors with row weights and column transforms
 (:mod:`drivegain.identify.design`), so the α grid and the σ iteration cost almost nothing.
@@ -32,6 +37,7 @@ import numpy as np
 from drivegain.config.robot import Robot, WristFriction
 from drivegain.dynamics.base import BaseParameters
 from drivegain.errors import InputError
+from drivegain.identify import forked
 from drivegain.identify.blas import limited_blas_threads
 from drivegain.identify.cases import CaseResult, fit_case
 from drivegain.identify.checks import Check, physical_checks
@@ -266,69 +272,68 @@ def _run_procedure(problem: Problem, options: Options, step: Step) -> ProcedureR
     wtls = None
     if options.gains is not None:
         gains_source = options.gains.source
-        case1_gains = options.gains.values
         step("IDIM-WLS with the given gains")
-        case1 = fit_case("given", main, case1_gains, names, factors)
-        case2 = None
+        case1 = fit_case("given", main, options.gains.values, names, factors)
         gains, gains_std = options.gains.values, options.gains.std
     else:
         step("Case 1: IDIM-WLS with the a priori gains")
-        case1 = fit_case("case1", main, apriori, names, factors)
+        # Independent of the gains: in a child while the gains are estimated, on long runs.
+        pending1 = forked.start(
+            "Case 1 fit",
+            lambda: fit_case("case1", main, apriori, names, factors),
+            parallel=b is not None and _long(main),
+        )
         if b is not None:
             # Invariant, checked above: a loaded run always has its payload.
             assert b.run.payload is not None
-            wtls = estimate_gains(
-                a,
-                b,
-                b.run.payload,
-                apriori,
-                estimator=options.estimator,
-                alpha=options.alpha,
-                alpha_grid=options.alpha_grid,
-                step=step,
-            )
+            try:
+                wtls = estimate_gains(
+                    a,
+                    b,
+                    b.run.payload,
+                    apriori,
+                    estimator=options.estimator,
+                    alpha=options.alpha,
+                    alpha_grid=options.alpha_grid,
+                    step=step,
+                )
+            except BaseException:
+                pending1.cancel()
+                raise
             warnings += wtls.warnings
-            step("Case 2: IDIM-WLS with the identified gains")
-            case2 = fit_case("case2", main, wtls.gains, names, factors, gain_cov=_gain_cov(wtls))
             gains_source, gains, gains_std = "identified", wtls.gains, wtls.std
         else:
-            case2 = None
             gains_source, gains, gains_std = "apriori", apriori, None
+        case1 = pending1.result()
+    final_name = "case2" if wtls is not None else case1.name
+
+    # The other friction forms' fits need only the final gains: in a child meanwhile.
+    other_forms = (
+        [f for f in problem.bases if f is not form]
+        if options.compare_forms and robot.couplings  # the forms differ only there
+        else []
+    )
+    if other_forms:
+        step("Friction form " + ", ".join(f"'{f.value}'" for f in other_forms))
+    pending_forms = forked.start(
+        "friction forms",
+        lambda: {
+            f: _form_fit(problem, f, main, final_name, gains, options.cv_fraction)
+            for f in other_forms
+        },
+        parallel=bool(other_forms) and _long(main),
+    )
+    try:
+        case2 = None
+        if wtls is not None:
+            step("Case 2: IDIM-WLS with the identified gains")
+            case2 = fit_case("case2", main, wtls.gains, names, factors, gain_cov=_gain_cov(wtls))
+        forms, validation, designs, cv = _validate(problem, options, main, case1, case2, wtls, step)
+    except BaseException:
+        pending_forms.cancel()
+        raise
+    forms.update(pending_forms.result())
     final = case2 if case2 is not None else case1
-
-    validation: dict[str, CaseResult] = {}
-    designs = {"unloaded": a}
-    if b is not None:
-        designs["loaded"] = b
-    if problem.validation is not None:
-        step("Validation payload (Table 5)")
-        c = make_design(problem.validation, bp, form, robot)
-        if c.run.payload is None:
-            raise InputError(
-                f"the validation run {c.run.label!r} has no payload",
-                file=_source(c.run),
-                key="payload",
-            )
-        designs["validation"] = c
-        validation[case1.name] = fit_case(case1.name, [a, c], case1.gains, names)
-        if case2 is not None:
-            validation["case2"] = fit_case(
-                "case2", [a, c], case2.gains, names, gain_cov=_gain_cov(wtls)
-            )
-
-    step("Cross-validation")
-    cv = cross_validate(main, final.gains, names, options.cv_fraction)
-    forms = {form: FormFit(form=form, case=final, cv=cv)}
-    if options.compare_forms and robot.couplings:
-        # The forms differ only in the coupled motors' friction: nothing to compare without.
-        for other, obp in problem.bases.items():
-            if other is form:
-                continue
-            step(f"Friction form '{other.value}'")
-            od = [make_design(d.run, obp, other, robot) for d in main]
-            ocase = fit_case(final.name, od, final.gains, list(obp.names))
-            ocv = cross_validate(od, final.gains, list(obp.names), options.cv_fraction)
-            forms[other] = FormFit(form=other, case=ocase, cv=ocv)
 
     checks = physical_checks(final)
     for c_ in checks:
@@ -352,3 +357,69 @@ def _run_procedure(problem: Problem, options: Options, step: Step) -> ProcedureR
         designs=designs,
         warnings=warnings,
     )
+
+
+#: Scalar-equation count (samples × joints of runs a and b) from which the independent fits
+#: run in a forked child (:mod:`.forked`): below it a fork and the pickled results cost more
+#: than they save (one 60 s run at 250 Hz, decimated, is about 1 500 samples).
+PARALLEL_EQUATIONS = 120_000
+
+
+def _long(main: list[Design]) -> bool:
+    return sum(d.rows * d.n for d in main) >= PARALLEL_EQUATIONS
+
+
+def _form_fit(
+    problem: Problem,
+    form: WristFriction,
+    main: list[Design],
+    case: str,
+    gains: np.ndarray,
+    cv_fraction: float,
+) -> FormFit:
+    """The final gains' fit (named ``case``) and cross-validation with another coupled-wrist
+    friction form."""
+    obp = problem.bases[form]
+    od = [make_design(d.run, obp, form, problem.robot) for d in main]
+    names = list(obp.names)
+    fit = fit_case(case, od, gains, names)
+    return FormFit(form=form, case=fit, cv=cross_validate(od, gains, names, cv_fraction))
+
+
+def _validate(
+    problem: Problem,
+    options: Options,
+    main: list[Design],
+    case1: CaseResult,
+    case2: CaseResult | None,
+    wtls: GainIdentification | None,
+    step: Step,
+) -> tuple[dict[WristFriction, FormFit], dict[str, CaseResult], dict[str, Design], CrossValidation]:
+    """Table 5 with the validation run, and the chosen form's cross-validation."""
+    form = options.friction
+    bp = problem.bases[form]
+    names = list(bp.names)
+    final = case2 if case2 is not None else case1
+    a = main[0]
+    validation: dict[str, CaseResult] = {}
+    designs = {"unloaded": a}
+    if len(main) > 1:
+        designs["loaded"] = main[1]
+    if problem.validation is not None:
+        step("Validation payload (Table 5)")
+        c = make_design(problem.validation, bp, form, problem.robot)
+        if c.run.payload is None:
+            raise InputError(
+                f"the validation run {c.run.label!r} has no payload",
+                file=_source(c.run),
+                key="payload",
+            )
+        designs["validation"] = c
+        validation[case1.name] = fit_case(case1.name, [a, c], case1.gains, names)
+        if case2 is not None:
+            validation["case2"] = fit_case(
+                "case2", [a, c], case2.gains, names, gain_cov=_gain_cov(wtls)
+            )
+    step("Cross-validation")
+    cv = cross_validate(main, final.gains, names, options.cv_fraction)
+    return {form: FormFit(form=form, case=final, cv=cv)}, validation, designs, cv

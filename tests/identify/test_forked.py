@@ -1,0 +1,109 @@
+"""Independent fits in a forked child (identify/forked.py): the same results as run in turn,
+errors carried back with their context, a dead child reported, no fork where it is unsafe."""
+
+from __future__ import annotations
+
+import os
+import threading
+from dataclasses import fields, is_dataclass
+from typing import Any
+
+import numpy as np
+import pytest
+
+from drivegain.errors import IdentificationError, InputError
+from drivegain.identify import forked, procedure
+from drivegain.identify.procedure import Options, Problem, run_procedure
+
+
+def _assert_same(x: Any, y: Any, where: str) -> None:
+    """Field by field, arrays bit for bit (the same function on the same data)."""
+    if is_dataclass(x) and not isinstance(x, type):
+        assert type(x) is type(y), where
+        for f in fields(x):
+            _assert_same(getattr(x, f.name), getattr(y, f.name), f"{where}.{f.name}")
+    elif isinstance(x, dict):
+        assert list(x) == list(y), where
+        for k in x:
+            _assert_same(x[k], y[k], f"{where}[{k!r}]")
+    elif isinstance(x, list | tuple):
+        assert len(x) == len(y), where
+        for i, (u, v) in enumerate(zip(x, y, strict=True)):
+            _assert_same(u, v, f"{where}[{i}]")
+    elif isinstance(x, np.ndarray):
+        np.testing.assert_array_equal(x, y, err_msg=where)
+    elif isinstance(x, float) and np.isnan(x):
+        assert np.isnan(y), where
+    else:
+        assert x == y, where
+
+
+@pytest.mark.skipif(not forked.fork_is_safe(), reason="no fork here (one CPU or no fork)")
+def test_forked_fits_equal_fits_in_turn(world, noisy_run, monkeypatch) -> None:
+    rng = np.random.default_rng(41)
+    problem = Problem(
+        robot=world.robot,
+        bases=world.bases,
+        unloaded=noisy_run(0, None, rng, duration=12.0, label="unloaded"),
+        loaded=noisy_run(1, world.payload, rng, duration=12.0, label="loaded"),
+        validation=noisy_run(2, world.validation, rng, duration=12.0, label="validation"),
+    )
+    monkeypatch.setattr(procedure, "PARALLEL_EQUATIONS", 10**12)
+    in_turn = run_procedure(problem, Options())
+
+    children: list[str] = []
+    real_start = forked.start
+
+    def start(what, fn, *, parallel):  # type: ignore[no-untyped-def]
+        pending = real_start(what, fn, parallel=parallel)
+        if pending.forked:
+            children.append(what)
+        return pending
+
+    monkeypatch.setattr(procedure, "PARALLEL_EQUATIONS", 0)
+    monkeypatch.setattr(forked, "start", start)
+    in_children = run_procedure(problem, Options())
+    assert children == ["Case 1 fit", "friction forms"]
+    assert len(in_children.forms) == 2
+    _assert_same(in_children, in_turn, "result")
+
+
+def _bad_file() -> None:
+    raise InputError("no such column 'q7'", file="run.mcap", key="joint_states")
+
+
+@pytest.mark.skipif(not forked.fork_is_safe(), reason="no fork here (one CPU or no fork)")
+def test_child_error_comes_back_with_its_context() -> None:
+    pending = forked.start("Case 1 fit", _bad_file, parallel=True)
+    assert pending.forked
+    with pytest.raises(InputError) as caught:
+        pending.result()
+    assert caught.value.file == "run.mcap"
+    assert caught.value.key == "joint_states"
+    assert "no such column 'q7'" in str(caught.value)
+
+
+@pytest.mark.skipif(not forked.fork_is_safe(), reason="no fork here (one CPU or no fork)")
+def test_dead_child_is_reported_by_what_it_computed() -> None:
+    pending = forked.start("friction forms", lambda: os._exit(3), parallel=True)
+    with pytest.raises(IdentificationError, match="friction forms: the process computing it"):
+        pending.result()
+
+
+def test_no_fork_while_another_thread_runs() -> None:
+    stop = threading.Event()
+    other = threading.Thread(target=stop.wait, daemon=True)
+    other.start()
+    try:
+        assert not forked.fork_is_safe()
+        pending = forked.start("Case 1 fit", lambda: os.getpid(), parallel=True)
+        assert not pending.forked
+        assert pending.result() == os.getpid()  # computed here, in this process
+    finally:
+        stop.set()
+        other.join()
+
+
+def test_small_work_is_not_forked() -> None:
+    pending = forked.start("Case 1 fit", lambda: os.getpid(), parallel=False)
+    assert not pending.forked and pending.result() == os.getpid()
