@@ -37,6 +37,15 @@ def fork_is_safe() -> bool:
     return threading.active_count() == 1
 
 
+def send_error(conn: Connection, exc: BaseException) -> None:
+    """Send ``("error", exc)`` to the parent; an exception that does not pickle goes as an
+    :class:`IdentificationError` with its type and line."""
+    try:
+        conn.send(("error", exc))
+    except Exception:
+        conn.send(("error", IdentificationError(f"{type(exc).__name__}: {exc}")))
+
+
 def _child(conn: Connection, fn: Callable[[], Any]) -> None:
     """The child's whole life: ``fn()`` run and its result (or exception) sent back."""
     try:
@@ -44,10 +53,7 @@ def _child(conn: Connection, fn: Callable[[], Any]) -> None:
             result = fn()
         conn.send(("done", result))
     except BaseException as exc:
-        try:
-            conn.send(("error", exc))
-        except Exception:  # an exception that does not pickle: its line, as a plain error
-            conn.send(("error", IdentificationError(f"{type(exc).__name__}: {exc}")))
+        send_error(conn, exc)
     finally:
         conn.close()
 

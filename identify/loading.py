@@ -32,7 +32,7 @@ from drivegain.config.robot import WristFriction
 from drivegain.dynamics.model import RobotModel
 from drivegain.errors import IdentificationError, InputError
 from drivegain.identify.blas import limited_blas_threads
-from drivegain.identify.forked import fork_is_safe
+from drivegain.identify.forked import fork_is_safe, send_error
 from drivegain.identify.prepare import (
     PreparedRun,
     bases_for_forms,
@@ -228,10 +228,7 @@ def _worker(
         conn.send(("done", light, regressor.shape))
         conn.send_bytes(regressor.data.cast("B"))
     except BaseException as exc:
-        try:
-            conn.send(("error", exc))
-        except Exception:  # an exception that does not pickle: its line, as a plain error
-            conn.send(("error", IdentificationError(f"{type(exc).__name__}: {exc}")))
+        send_error(conn, exc)
     finally:
         conn.close()
 
