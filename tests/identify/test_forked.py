@@ -3,6 +3,7 @@ errors carried back with their context, a dead child reported, no fork where it 
 
 from __future__ import annotations
 
+import multiprocessing
 import os
 import threading
 from dataclasses import fields, is_dataclass
@@ -14,6 +15,17 @@ import pytest
 from drivegain.errors import IdentificationError, InputError
 from drivegain.identify import forked, procedure
 from drivegain.identify.procedure import Options, Problem, run_procedure
+
+#: A fork is possible here at all (the suite's own threads aside, see ``fork_allowed``).
+CAN_FORK = "fork" in multiprocessing.get_all_start_methods() and len(os.sched_getaffinity(0)) > 1
+needs_fork = pytest.mark.skipif(not CAN_FORK, reason="no fork here (one CPU or no fork)")
+
+
+@pytest.fixture
+def fork_allowed(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Threads left by other tests of the suite (daemon threads of buses, notifiers) would make
+    :func:`forked.fork_is_safe` say no; the children here touch no lock of theirs."""
+    monkeypatch.setattr(forked, "fork_is_safe", lambda: True)
 
 
 def _assert_same(x: Any, y: Any, where: str) -> None:
@@ -38,8 +50,8 @@ def _assert_same(x: Any, y: Any, where: str) -> None:
         assert x == y, where
 
 
-@pytest.mark.skipif(not forked.fork_is_safe(), reason="no fork here (one CPU or no fork)")
-def test_forked_fits_equal_fits_in_turn(world, noisy_run, monkeypatch) -> None:
+@needs_fork
+def test_forked_fits_equal_fits_in_turn(world, noisy_run, monkeypatch, fork_allowed) -> None:
     rng = np.random.default_rng(41)
     problem = Problem(
         robot=world.robot,
@@ -72,8 +84,8 @@ def _bad_file() -> None:
     raise InputError("no such column 'q7'", file="run.mcap", key="joint_states")
 
 
-@pytest.mark.skipif(not forked.fork_is_safe(), reason="no fork here (one CPU or no fork)")
-def test_child_error_comes_back_with_its_context() -> None:
+@needs_fork
+def test_child_error_comes_back_with_its_context(fork_allowed: None) -> None:
     pending = forked.start("Case 1 fit", _bad_file, parallel=True)
     assert pending.forked
     with pytest.raises(InputError) as caught:
@@ -83,9 +95,17 @@ def test_child_error_comes_back_with_its_context() -> None:
     assert "no such column 'q7'" in str(caught.value)
 
 
-@pytest.mark.skipif(not forked.fork_is_safe(), reason="no fork here (one CPU or no fork)")
-def test_dead_child_is_reported_by_what_it_computed() -> None:
-    pending = forked.start("friction forms", lambda: os._exit(3), parallel=True)
+def _die_if_child(parent: int) -> None:
+    if os.getpid() != parent:  # never this process, whatever happened to the fork
+        os._exit(3)
+    raise AssertionError("ran in the parent: not forked")
+
+
+@needs_fork
+def test_dead_child_is_reported_by_what_it_computed(fork_allowed: None) -> None:
+    parent = os.getpid()
+    pending = forked.start("friction forms", lambda: _die_if_child(parent), parallel=True)
+    assert pending.forked
     with pytest.raises(IdentificationError, match="friction forms: the process computing it"):
         pending.result()
 
