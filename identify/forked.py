@@ -7,9 +7,9 @@ part when one of them runs in a forked child. The child inherits the prepared da
 copied until written) and sends back its small result, pickled, over a pipe.
 
 Where a fork is not safe (no ``fork`` start method, other threads running, whose locks the child
-would inherit in any state) or the work is too small to pay for the fork, the function runs here,
-at once, in the same order as before. Both ways run the same function on the same data, so the
-results are identical.
+would inherit in any state), only one CPU is ours, or the work is too small to pay for the fork,
+the function runs here, at once, in the same order as before. Both ways run the same function on
+the same data, so the results are identical.
 """
 
 from __future__ import annotations
@@ -28,13 +28,16 @@ T = TypeVar("T")
 
 
 def fork_is_safe() -> bool:
-    """Whether a child may be forked here: ``fork`` exists, more than one CPU is ours and no
-    other thread runs (a fork copies other threads' locks in whatever state they are)."""
+    """Whether a child may be forked here: ``fork`` exists and no other thread runs (a fork
+    copies other threads' locks in whatever state they are: the child could deadlock)."""
     if "fork" not in multiprocessing.get_all_start_methods():
         return False
-    if len(os.sched_getaffinity(0)) < 2:
-        return False
     return threading.active_count() == 1
+
+
+def two_cpus() -> bool:
+    """Whether at least two CPUs are ours (else a child only takes turns with this process)."""
+    return len(os.sched_getaffinity(0)) > 1
 
 
 def send_error(conn: Connection, exc: BaseException) -> None:
@@ -136,4 +139,4 @@ def start(what: str, fn: Callable[[], T], *, parallel: bool) -> Pending[T]:
     parallel
         The caller's judgement that the work is large enough to pay for a fork (tens of ms).
     """
-    return Pending(what, fn, fork=parallel and fork_is_safe())
+    return Pending(what, fn, fork=parallel and two_cpus() and fork_is_safe())

@@ -16,13 +16,13 @@ from __future__ import annotations
 
 import multiprocessing
 import signal
-import threading
 from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from drivegain.identify.forked import fork_is_safe
 from drivegain.identify.procedure import ProcedureResult
 
 if TYPE_CHECKING:
@@ -334,11 +334,7 @@ def start_worker() -> None:
     (a fork copies their locks in whatever state they are: the worker could deadlock).
     """
     global _WORKER
-    if (
-        _WORKER is None
-        and threading.active_count() == 1
-        and "fork" in multiprocessing.get_all_start_methods()
-    ):
+    if _WORKER is None and fork_is_safe():
         _WORKER = _Worker()
 
 

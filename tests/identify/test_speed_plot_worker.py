@@ -3,6 +3,7 @@ are drawn in the calling process, which then raises the real error."""
 
 from __future__ import annotations
 
+import multiprocessing
 from pathlib import Path
 
 import numpy as np
@@ -12,7 +13,11 @@ from drivegain.identify import plots
 
 
 @pytest.fixture
-def worker():
+def worker(monkeypatch):
+    # Threads other tests of the suite leave behind for a moment (bus notifiers) would make the
+    # fork-safety rule say no; the worker touches no lock of theirs.
+    fork = "fork" in multiprocessing.get_all_start_methods()
+    monkeypatch.setattr(plots, "fork_is_safe", lambda: fork)
     plots.start_worker()
     yield plots._WORKER
     plots.stop_worker()
