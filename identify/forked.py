@@ -116,7 +116,7 @@ class Pending(Generic[T]):
     def cancel(self) -> None:
         """End the child (if any) without waiting for its result."""
         if self._proc is not None and self._proc.is_alive():
-            self._proc.terminate()
+            self._proc.kill()  # nothing to clean up; a SIGTERM handler inherited could ignore it
         self._close()
 
     def _close(self) -> None:

@@ -285,7 +285,10 @@ def _in_workers(
             conn.close()
         for proc in procs:
             if proc.is_alive():
-                proc.terminate()
+                # SIGKILL: a worker has nothing to clean up, and SIGTERM may meet a handler the
+                # parent had installed (it does not end a worker blocked writing to a pipe whose
+                # reading end a sibling inherited).
+                proc.kill()
             proc.join()
 
 

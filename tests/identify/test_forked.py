@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import signal
 import threading
 from dataclasses import fields, is_dataclass
 from typing import Any
@@ -127,3 +128,25 @@ def test_no_fork_while_another_thread_runs() -> None:
 def test_small_work_is_not_forked() -> None:
     pending = forked.start("Case 1 fit", lambda: os.getpid(), parallel=False)
     assert not pending.forked and pending.result() == os.getpid()
+
+
+def _big_result() -> bytes:
+    return bytes(16 * 2**20)  # far more than a pipe holds: the child blocks sending it
+
+
+@needs_fork
+def test_cancel_ends_a_child_that_ignores_sigterm(fork_allowed: None) -> None:
+    """A child that inherited an ignored (or handled) SIGTERM, blocked sending a result nobody
+    reads, still ends on cancel: found as a hang of the whole suite."""
+    old = signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    try:
+        pending = forked.start("friction forms", _big_result, parallel=True)
+    finally:
+        signal.signal(signal.SIGTERM, old)
+    assert pending.forked
+    done = threading.Event()
+    canceller = threading.Thread(target=lambda: (pending.cancel(), done.set()), daemon=True)
+    canceller.start()
+    # Not a timing assertion: the bound is minutes for a step that takes milliseconds; failing
+    # it means cancel would have waited forever.
+    assert done.wait(120.0), "cancel did not end the child"
