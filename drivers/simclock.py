@@ -84,13 +84,12 @@ class WallTimer:
         if self._thread.is_alive() and self._thread is not threading.current_thread():
             self._thread.join(2.0)
 
-    def _is_stopped(self) -> bool:
-        return self._stopped
-
     def _run(self) -> None:
         while True:
             with self._cond:
-                if not wait_until_due(self._cond, self._heap, time.monotonic, self._is_stopped):
+                if not wait_until_due(
+                    self._cond, self._heap, time.monotonic, lambda: self._stopped
+                ):
                     return
                 _, _, fn = heapq.heappop(self._heap)
             self._guard(fn)

@@ -328,12 +328,14 @@ def _run_procedure(problem: Problem, options: Options, step: Step) -> ProcedureR
         if wtls is not None:
             step("Case 2: IDIM-WLS with the identified gains")
             case2 = fit_case("case2", main, wtls.gains, names, factors, gain_cov=_gain_cov(wtls))
-        forms, validation, designs, cv = _validate(problem, options, main, case1, case2, wtls, step)
+        final = case2 if case2 is not None else case1
+        validation, designs = _validation_fits(problem, form, main, case1, case2, wtls, step)
+        step("Cross-validation")
+        cv = cross_validate(main, final.gains, names, options.cv_fraction)
     except BaseException:
         pending_forms.cancel()
         raise
-    forms.update(pending_forms.result())
-    final = case2 if case2 is not None else case1
+    forms = {form: FormFit(form=form, case=final, cv=cv), **pending_forms.result()}
 
     checks = physical_checks(final)
     for c_ in checks:
@@ -386,20 +388,19 @@ def _form_fit(
     return FormFit(form=form, case=fit, cv=cross_validate(od, gains, names, cv_fraction))
 
 
-def _validate(
+def _validation_fits(
     problem: Problem,
-    options: Options,
+    form: WristFriction,
     main: list[Design],
     case1: CaseResult,
     case2: CaseResult | None,
     wtls: GainIdentification | None,
     step: Step,
-) -> tuple[dict[WristFriction, FormFit], dict[str, CaseResult], dict[str, Design], CrossValidation]:
-    """Table 5 with the validation run, and the chosen form's cross-validation."""
-    form = options.friction
+) -> tuple[dict[str, CaseResult], dict[str, Design]]:
+    """Table 5: the validation run's payload with the gains of each case; and the designs of
+    all runs by role."""
     bp = problem.bases[form]
     names = list(bp.names)
-    final = case2 if case2 is not None else case1
     a = main[0]
     validation: dict[str, CaseResult] = {}
     designs = {"unloaded": a}
@@ -420,6 +421,4 @@ def _validate(
             validation["case2"] = fit_case(
                 "case2", [a, c], case2.gains, names, gain_cov=_gain_cov(wtls)
             )
-    step("Cross-validation")
-    cv = cross_validate(main, final.gains, names, options.cv_fraction)
-    return {form: FormFit(form=form, case=final, cv=cv)}, validation, designs, cv
+    return validation, designs
