@@ -6,10 +6,10 @@ Cases:
   (c) two simulated 10-minute runs at 1 kHz,
   and a scaling series of (b)-like runs of 30 to 240 s, to see how time and memory grow.
 
-Each identification runs in a fresh process (peak RSS = its ru_maxrss); the memory column is the
-peak minus that of a process that only imported the pipeline. Times are printed as seconds and
-as ratios to a baseline measured in the same run (a fixed numpy workload), so runs on different
-machines compare. Logs are written to a temporary folder first (not timed).
+Each identification runs in a fresh process (peak RSS = its ru_maxrss, or its largest worker's);
+the memory column is the peak minus that of a process that only imported the pipeline. Times are
+printed as seconds and as ratios to a baseline measured in the same run (a fixed numpy workload),
+so runs on different machines compare. Logs are written to a temporary folder first (not timed).
 
 Usage: python benchmarks/bench_identify.py [--quick] [--keep DIR]
        python benchmarks/bench_identify.py --study SEEDS   (coverage and σ studies)
@@ -70,7 +70,10 @@ def _child(args: list[str]) -> None:
 
 
 def _maxrss_kb() -> int:
-    return int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
+    """Peak RSS of this process or of its largest worker process (long runs are read in
+    forked workers), kB."""
+    own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return int(max(own, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss))
 
 
 def _run_child(kind: str, spec: dict[str, object] | None = None) -> dict[str, float]:

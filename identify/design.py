@@ -56,11 +56,11 @@ class Design:
 
     def block(self, j: int) -> np.ndarray:
         """``D_j`` (N, m)."""
-        w = self.run.regressor[:, j, :]
+        w = self.run.regressor
         out = np.zeros((self.rows, self.m))
-        out[:, : self.nb] = w[:, self.base_idx]
+        out[:, : self.nb] = w.joint_columns(j, self.base_idx)
         if self.payload_idx is not None:
-            out[:, self.nb : self.nb + 10] = w[:, self.payload_idx]
+            out[:, self.nb : self.nb + 10] = w.joint_columns(j, self.payload_idx)
         out[:, self.nb + 10 :] = self.run.current * self.kt[j][None, :]
         return out
 
@@ -74,11 +74,11 @@ class Design:
 
     def model_torque(self, chi: np.ndarray, chi_payload: np.ndarray | None) -> np.ndarray:
         """Joint torques W·χ + W_L·χ_L of the model (N·m), (N, n)."""
-        coef = np.zeros(self.run.regressor.shape[2])
+        coef = np.zeros(self.run.regressor.c)
         np.add.at(coef, self.base_idx, chi)
         if self.payload_idx is not None and chi_payload is not None:
             np.add.at(coef, self.payload_idx, chi_payload)
-        return np.asarray(self.run.regressor @ coef)
+        return self.run.regressor.dot(coef)
 
     def subset(self, sl: slice) -> Design:
         return Design(self.run.rows(sl), self.base_idx, self.payload_idx, self.kt)

@@ -8,9 +8,10 @@ after the other in this process. Both ways run the same function on the same dat
 results are identical.
 
 A worker sends its progress, then the prepared run over a pipe: the small fields pickled, the
-regressor (hundreds of MB for a 10-minute 1 kHz log) as raw bytes received straight into an
-array of this process, so it is never held twice. An error in a worker (a corrupt log) comes
-back as the same exception, file and key included; a worker that dies is reported by run.
+regressor's series (about a hundred MB for a 10-minute 1 kHz log) as raw bytes read straight
+into an array of this process, so they are never held twice. An error in a worker (a corrupt
+log) comes back as the same exception, file and key included; a worker that dies is reported by
+run.
 """
 
 from __future__ import annotations
@@ -206,8 +207,8 @@ def _run_info(run: LoadedRun, prepared: PreparedRun) -> RunInfo:
 # Worker processes
 #
 # Messages from a worker, in order: ("describe", text, total) and ("advance", k) any number of
-# times, then either ("done", Loaded without its regressor, shape) followed by the regressor's
-# bytes, or ("error", exception).
+# times, then either ("done", Loaded without its regressor's series, their shape) followed by
+# the series' raw bytes, or ("error", exception).
 
 
 def _worker(
@@ -221,16 +222,49 @@ def _worker(
         )
         with limited_blas_threads(1):  # the workers share the CPUs already
             loaded = _load_one(model, columns, spec, req, steps)
-        regressor = np.ascontiguousarray(loaded.prepared.regressor)
+        reg = loaded.prepared.regressor
+        series = np.ascontiguousarray(reg.series)
         light = dataclasses.replace(
-            loaded, prepared=dataclasses.replace(loaded.prepared, regressor=np.empty(0))
+            loaded,
+            prepared=dataclasses.replace(
+                loaded.prepared, regressor=dataclasses.replace(reg, series=np.empty(0))
+            ),
         )
-        conn.send(("done", light, regressor.shape))
-        conn.send_bytes(regressor.data.cast("B"))
+        conn.send(("done", light, series.shape))
+        _write_raw(conn, series)
     except BaseException as exc:
         send_error(conn, exc)
     finally:
         conn.close()
+
+
+def _write_raw(conn: Connection, array: np.ndarray) -> None:
+    """Write ``array``'s bytes to the pipe unframed, right after the message announcing them.
+
+    ``Connection.send_bytes``/``recv_bytes_into`` would do, but the receiving side assembles
+    the whole message in a buffer of its own before copying it: hundreds of MB held twice.
+    """
+    view = memoryview(array).cast("B")
+    fd = conn.fileno()
+    while view:
+        view = view[os.write(fd, view) :]
+
+
+def _read_raw(conn: Connection, array: np.ndarray) -> None:
+    """Fill ``array`` (C-contiguous) with the bytes :func:`_write_raw` sent, read in place.
+
+    Raises
+    ------
+    EOFError
+        The pipe ended first (the worker died while sending).
+    """
+    view = memoryview(array).cast("B")
+    fd = conn.fileno()
+    while view:
+        got = os.readv(fd, [view])
+        if got == 0:
+            raise EOFError("pipe closed")
+        view = view[got:]
 
 
 def _in_workers(
@@ -320,9 +354,15 @@ def _receive(
         errors[i] = message[1]
         return True
     light, shape = message[1], message[2]
-    regressor = np.empty(shape)
-    conn.recv_bytes_into(regressor.data.cast("B"))
-    results[i] = dataclasses.replace(
-        light, prepared=dataclasses.replace(light.prepared, regressor=regressor)
-    )
+    series = np.empty(shape)
+    try:
+        _read_raw(conn, series)
+    except EOFError:
+        errors[i] = IdentificationError(
+            f"run {spec[1]} ({spec[0]}): the process reading it ended while sending its data"
+        )
+        return True
+    reg = dataclasses.replace(light.prepared.regressor, series=series)
+    prepared = dataclasses.replace(light.prepared, regressor=reg)
+    results[i] = dataclasses.replace(light, prepared=prepared)
     return True

@@ -37,6 +37,7 @@ import scipy.linalg
 
 from drivegain.config.payload import PAYLOAD_PARAMS, Payload
 from drivegain.errors import IdentificationError
+from drivegain.identify.compact import CompactRegressor
 from drivegain.identify.design import Design
 from drivegain.identify.estimate import r_factor
 from drivegain.identify.hac import LongRunSum, bartlett_lag, lag1_autocorrelation
@@ -69,7 +70,7 @@ class RunArrays:
     v
         Currents, A, (N, n).
     regressor
-        The prepared run's regressor columns, (N, n, c) (a view, not a copy).
+        The prepared run's regressor columns, (N, n, c) (the same object, not a copy).
     base_idx
         Its columns of the base parameters, (nb,).
     unknown_idx
@@ -82,7 +83,7 @@ class RunArrays:
     """
 
     v: np.ndarray
-    regressor: np.ndarray
+    regressor: CompactRegressor
     base_idx: np.ndarray
     unknown_idx: np.ndarray | None
     known_idx: np.ndarray | None
@@ -96,25 +97,25 @@ class RunArrays:
     @property
     def w(self) -> np.ndarray:
         """Base-parameter regressor per joint, (N, n, nb) (a copy: use on row blocks)."""
-        return self.regressor[:, :, self.base_idx]
+        return self.regressor.gather(self.base_idx)
 
     @property
     def wu(self) -> np.ndarray:
         """Unknown payload parameters' columns per joint, (N, n, nu) (zero when unloaded)."""
         if self.unknown_idx is None:
             return np.zeros((self.samples, self.v.shape[1], self.nu))
-        return self.regressor[:, :, self.unknown_idx]
+        return self.regressor.gather(self.unknown_idx)
 
     @property
     def tau_known(self) -> np.ndarray:
         """Torque of the known payload parameters, N·m, (N, n) (zero when unloaded)."""
         if self.known_idx is None:
             return np.zeros((self.samples, self.v.shape[1]))
-        return np.asarray(self.regressor[:, :, self.known_idx] @ self.known_values)
+        return np.asarray(self.regressor.gather(self.known_idx) @ self.known_values)
 
     def rows(self, sl: slice) -> RunArrays:
         """The samples ``sl`` (views, no copy)."""
-        return replace(self, v=self.v[sl], regressor=self.regressor[sl])
+        return replace(self, v=self.v[sl], regressor=self.regressor.rows(sl))
 
 
 def run_arrays(d: Design, payload: Payload) -> RunArrays:
@@ -217,29 +218,39 @@ def predict(theta: np.ndarray, run: RunArrays, kt_inv: np.ndarray) -> tuple[np.n
     one block at a time.
     """
     nb, n = run.base_idx.size, run.v.shape[1]
-    chi, g, chi_u = _split(theta, nb, n)
+    g = theta[nb : nb + n]
     u = np.empty((run.samples, n))
     for sl in chunks(run.samples):
         sub = run.rows(sl)
-        tau = sub.w @ chi + sub.tau_known
-        if chi_u.size:
-            tau = tau + sub.wu @ chi_u
-        u[sl] = tau @ kt_inv.T
+        u[sl] = _torque(theta, sub, sub.w) @ kt_inv.T
     return u / g[None, :], u
 
 
+def _torque(theta: np.ndarray, run: RunArrays, w: np.ndarray) -> np.ndarray:
+    """Model torques W χ + W_uL χ_uL + τ_kL of ``run``, N·m, (N, n); ``w`` is ``run.w``."""
+    chi, _, chi_u = _split(theta, run.base_idx.size, run.v.shape[1])
+    tau = w @ chi + run.tau_known
+    if chi_u.size:
+        tau = tau + run.wu @ chi_u
+    return np.asarray(tau)
+
+
 def jacobian(
-    theta: np.ndarray, run: RunArrays, kt_inv: np.ndarray, v_hat: np.ndarray | None = None
+    theta: np.ndarray,
+    run: RunArrays,
+    kt_inv: np.ndarray,
+    v_hat: np.ndarray | None = None,
+    w: np.ndarray | None = None,
 ) -> np.ndarray:
     """∂v̂/∂θ per sample, (N, n, P), θ = (χ, g, χ_uL); ``v_hat``: :func:`predict`'s currents
-    at θ when the caller has them (computed here otherwise)."""
+    at θ and ``w``: ``run.w``, when the caller has them (computed here otherwise)."""
     nb, n = run.base_idx.size, run.v.shape[1]
     g = theta[nb : nb + n]
     m = kt_inv / g[:, None]  # diag(1/g) K⁻¹
     if v_hat is None:
         v_hat, _ = predict(theta, run, kt_inv)
     jac = np.zeros((run.samples, n, theta.size))
-    jac[:, :, :nb] = m @ run.w  # batched over samples
+    jac[:, :, :nb] = m @ (run.w if w is None else w)  # batched over samples
     idx = np.arange(n)
     jac[:, idx, nb + idx] = -v_hat / g[None, :]
     if theta.size > nb + n:
@@ -400,15 +411,14 @@ def ml_fit(
     def residuals(th: np.ndarray) -> list[np.ndarray]:
         return [r.v - predict(th, r, kt_inv)[0] for r in runs]
 
-    def whitened_sq(th: np.ndarray, whiten: np.ndarray) -> float:
-        return float(sum(np.sum((e @ whiten.T) ** 2) for e in residuals(th)))
+    def whitened_sq(resid: list[np.ndarray], whiten: np.ndarray) -> float:
+        return float(sum(np.sum((e @ whiten.T) ** 2) for e in resid))
 
-    r_aug = _augmented_factor(theta, runs, kt_inv, np.eye(n))
-    _check_rank(r_aug[:-1, :-1], names, nb, n)
     converged = False
     rounds = 0
     mean_square = np.mean(np.vstack([r.v for r in runs]) ** 2, axis=0)
-    noise = _noise(residuals(theta), mean_square)
+    resid = residuals(theta)
+    noise = _noise(resid, mean_square)
     while rounds < MAX_ITER:
         rounds += 1
         # Coordinate descent of the profiled likelihood: one Gauss-Newton step of θ with Σ
@@ -416,6 +426,9 @@ def ml_fit(
         # residuals. Each half lowers the likelihood's negative.
         whiten = np.linalg.inv(np.linalg.cholesky(noise))
         r_aug = _augmented_factor(theta, runs, kt_inv, whiten)
+        if rounds == 1:
+            # The whitened Jacobian has the rank of the Jacobian (the whitening is invertible).
+            _check_rank(r_aug[:-1, :-1], names, nb, n)
         r_mat, q = r_aug[:-1, :-1], r_aug[:-1, -1]
         delta = scipy.linalg.solve_triangular(r_mat, q)
         # ‖J̃δ‖² is how many standard deviations (squared) the fit moves.
@@ -424,13 +437,14 @@ def ml_fit(
         lam = 1.0
         while lam > 1e-6:
             trial = theta + lam * delta
-            if np.all(trial[nb : nb + n] != 0.0) and whitened_sq(trial, whiten) <= before:
-                break
+            if np.all(trial[nb : nb + n] != 0.0):
+                tried = residuals(trial)
+                if whitened_sq(tried, whiten) <= before:
+                    theta, resid = trial, tried
+                    break
             lam *= 0.5
-        else:
-            trial = theta  # no decrease along the step: round-off at the optimum
-        theta = trial
-        new_noise = _noise(residuals(theta), mean_square)
+        # else: no decrease along the step (round-off at the optimum): θ stays
+        new_noise = _noise(resid, mean_square)
         change = float(np.max(np.abs(np.diag(new_noise) / np.diag(noise) - 1.0)))
         noise = new_noise
         if (step_sq < DECREMENT_TOL or lam <= 1e-6) and change < NOISE_TOL:
@@ -521,8 +535,14 @@ def whitened_block(
 
     Meant for row blocks (:func:`chunks`): the Jacobian is the largest array of the fit.
     """
-    v_hat, _ = predict(theta, run, kt_inv)
-    jw = whiten @ jacobian(theta, run, kt_inv, v_hat)
+    if run.samples > CHUNK:
+        v_hat, _ = predict(theta, run, kt_inv)
+        jw = whiten @ jacobian(theta, run, kt_inv, v_hat)
+    else:  # one row block, as predict evaluates it: its columns W are gathered once
+        nb, n = run.base_idx.size, run.v.shape[1]
+        w = run.w
+        v_hat = (_torque(theta, run, w) @ kt_inv.T) / theta[nb : nb + n][None, :]
+        jw = whiten @ jacobian(theta, run, kt_inv, v_hat, w)
     return jw, np.asarray((run.v - v_hat) @ whiten.T)
 
 

@@ -30,6 +30,7 @@ from drivegain.dynamics.params import N_INERTIAL, N_PER_JOINT, standard_names
 from drivegain.dynamics.regressor import stack_joint_major, standard_regressor
 from drivegain.errors import DataError
 from drivegain.formats.trajectory import attached_fourier
+from drivegain.identify.compact import CompactRegressor
 from drivegain.identify.signal import FilterSettings, derivatives, parallel_decimate
 
 #: Full-rate samples per regressor evaluation and least decimation chunk: the (chunk, n, 86)
@@ -200,7 +201,8 @@ class PreparedRun:
     t
         Time of each kept sample, s, (N,).
     regressor
-        Regressor columns, (N, n, c), joint torque (N·m) per parameter unit.
+        Regressor columns, (N, n, c), joint torque (N·m) per parameter unit, without the
+        entries that are zero at every sample.
     columns
         Keys of the regressor columns (standard names; ``fcm6@paper`` for the other form).
     current
@@ -225,7 +227,7 @@ class PreparedRun:
 
     label: str
     t: np.ndarray
-    regressor: np.ndarray
+    regressor: CompactRegressor
     columns: tuple[str, ...]
     current: np.ndarray
     rate_hz: float
@@ -250,7 +252,7 @@ class PreparedRun:
         return PreparedRun(
             label=self.label,
             t=self.t[sl],
-            regressor=self.regressor[sl],
+            regressor=self.regressor.rows(sl),
             columns=self.columns,
             current=self.current[sl],
             rate_hz=self.rate_hz,
@@ -291,7 +293,7 @@ def prepare_exact(
     return PreparedRun(
         label=label,
         t=t,
-        regressor=w,
+        regressor=CompactRegressor.from_dense(w),
         columns=tuple(columns),
         current=np.asarray(current, dtype=float),
         rate_hz=rate,
@@ -485,7 +487,7 @@ def prepare_recording(
     rest = at_rest(qd)
     (c_all, rest_d) = parallel_decimate([current, rest.astype(float)], f, 0, source=src)
     nd = c_all.shape[0]
-    w_all = np.zeros((nd, n, len(columns)))
+    w_all = np.zeros((nd, rows.size))  # only the series that are not zero everywhere
     carry: np.ndarray | None = None  # regressor series of the previous window's tail
     carry_lo = 0
     for a, b in parts:
@@ -507,7 +509,7 @@ def prepare_recording(
         for g in range(0, rows.size, _SERIES_BLOCK):
             sl = slice(g, g + _SERIES_BLOCK)
             (wd,) = parallel_decimate([window[:, sl]], f, 0, source=src)
-            w_all[k0 : k0 + count, rows[sl], cols[sl]] = wd[first : first + count]
+            w_all[k0 : k0 + count, sl] = wd[first : first + count]
         # The next window starts at b - pad: keep what this one computed from there on.
         carry_lo = max(0, b - pad)
         carry = window[carry_lo - lo :].copy() if b < n_samples else None
@@ -527,7 +529,7 @@ def prepare_recording(
     return PreparedRun(
         label=label,
         t=t0 + keep * f / rate_hz,
-        regressor=_compact(w_all, keep),
+        regressor=CompactRegressor(_compact(w_all, keep), rows, cols, n, len(columns)),
         columns=tuple(columns),
         current=c_all[keep],
         rate_hz=rate_hz / f,

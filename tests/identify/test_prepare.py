@@ -68,8 +68,8 @@ def test_chunked_decimation_equals_whole_signal(world, monkeypatch) -> None:
     chunked = prepare_recording(world.model, world.columns, progress=seen.append, **kw)
     assert len(seen) > 3 and sum(seen) == t.size
     np.testing.assert_array_equal(chunked.t, whole.t)
-    scale = np.abs(whole.regressor).max(axis=(0, 1)) + 1e-300
-    assert np.max(np.abs(chunked.regressor - whole.regressor) / scale) < 1e-9
+    scale = np.abs(whole.regressor.dense()).max(axis=(0, 1)) + 1e-300
+    assert np.max(np.abs(chunked.regressor.dense() - whole.regressor.dense()) / scale) < 1e-9
     np.testing.assert_allclose(chunked.current, whole.current, atol=1e-9)
 
 
@@ -97,7 +97,7 @@ def test_decimated_regressor_follows_the_trajectory(world) -> None:
     exact = regressor_columns(world.model, qe, qde, qdde, world.columns)
     # Friction sign columns switch sharply and are smoothed by the filters: compare the rest.
     smooth = [i for i, k in enumerate(world.columns) if not k.startswith(("Fc", "fcm"))]
-    err = np.abs(run.regressor[:, :, smooth] - exact[:, :, smooth]).max()
+    err = np.abs(run.regressor.dense()[:, :, smooth] - exact[:, :, smooth]).max()
     assert err < 0.015 * np.abs(exact[:, :, smooth]).max()
 
 
