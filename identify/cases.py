@@ -111,6 +111,7 @@ def fit_case(
     base_names: Sequence[str],
     factors: Sequence[np.ndarray] | None = None,
     gain_cov: np.ndarray | None = None,
+    covariance: bool = True,
 ) -> CaseResult:
     """IDIM-WLS of the base parameters and every loaded run's 10 payload parameters.
 
@@ -132,6 +133,9 @@ def fit_case(
     gain_cov
         Covariance of ``gains`` ((N·m/A)², (n, n)), carried into the standard deviations;
         None for gains taken as exact (a priori or given without σ).
+    covariance
+        False skips the HAC standard deviations (NaN, lag 0): a fit whose estimate alone is
+        used (the cross-validation's) is spared two passes over its rows.
     """
     gains = np.asarray(gains, dtype=float)
     if factors is None:
@@ -151,8 +155,11 @@ def fit_case(
     res_sq = joint_residual_sq(factors, transforms, x_aug)
     y_sq = joint_residual_sq(factors, transforms, np.append(np.zeros(res.x.size), 1.0))
     nb = designs[0].nb
-    cov, lag = case_covariance(designs, transforms, sigma, res.x, gain_cov)
-    std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    if covariance:
+        cov, lag = case_covariance(designs, transforms, sigma, res.x, gain_cov)
+        std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    else:
+        std, lag = np.full(res.x.size, np.nan), 0
     chi = res.x[:nb]
     payloads = []
     for d, s in zip(designs, slots, strict=True):

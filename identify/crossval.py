@@ -14,6 +14,7 @@ import numpy as np
 from drivegain.errors import InputError
 from drivegain.identify.cases import fit_case, prediction_quality, predictions
 from drivegain.identify.design import Design
+from drivegain.identify.estimate import r_factor
 
 #: Fraction of each run held out (its end) for cross-validation.
 CV_FRACTION = 0.3
@@ -57,6 +58,7 @@ def cross_validate(
     gains: np.ndarray,
     base_names: Sequence[str],
     fraction: float = CV_FRACTION,
+    train_factors: Sequence[np.ndarray] | None = None,
 ) -> CrossValidation:
     """Hold out the last ``fraction`` of every run, fit IDIM-WLS on the rest, predict it.
 
@@ -70,6 +72,9 @@ def cross_validate(
         Names of the base parameters.
     fraction
         Held-out fraction of each run, in (0, 1).
+    train_factors
+        Per run, the R factors of the fitted part's rows (:func:`split_factors`), when the
+        caller has them (computed here otherwise).
 
     Returns
     -------
@@ -84,7 +89,7 @@ def cross_validate(
     if not 0.0 < fraction < 1.0:
         raise InputError(f"must be in (0, 1), got {fraction}", key="cv_fraction")
     train, test = split_runs(designs, fraction)
-    fit = fit_case("cv", train, gains, base_names)
+    fit = fit_case("cv", train, gains, base_names, train_factors, covariance=False)
     chi, payloads = fit.coefficients()
     held_out = prediction_quality(predictions(test, fit.gains, chi, payloads))
     return CrossValidation(
@@ -94,3 +99,28 @@ def cross_validate(
         relative_error=held_out.relative_error,
         train_relative_error=fit.relative_error,
     )
+
+
+def split_factors(
+    designs: Sequence[Design], fraction: float = CV_FRACTION
+) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Per run, the R factors of all its rows and of its fitted part (:func:`split_runs`).
+
+    The fitted part and the held-out end are reduced separately; stacking their two small
+    factors and reducing again gives the whole run's, so the cross-validation costs no pass
+    over the rows of its own.
+
+    Returns
+    -------
+    whole, train
+        Per run, (n, m, m) each.
+    """
+    if not 0.0 < fraction < 1.0:
+        raise InputError(f"must be in (0, 1), got {fraction}", key="cv_fraction")
+    train, test = split_runs(designs, fraction)
+    fitted = [d.factors() for d in train]
+    whole = [
+        np.stack([r_factor(np.vstack([f[j], h[j]])) for j in range(d.n)])
+        for d, f, h in zip(train, fitted, (d.factors() for d in test), strict=True)
+    ]
+    return whole, fitted

@@ -41,7 +41,7 @@ from drivegain.identify import forked
 from drivegain.identify.blas import limited_blas_threads
 from drivegain.identify.cases import CaseResult, fit_case
 from drivegain.identify.checks import Check, physical_checks
-from drivegain.identify.crossval import CV_FRACTION, CrossValidation, cross_validate
+from drivegain.identify.crossval import CV_FRACTION, CrossValidation, cross_validate, split_factors
 from drivegain.identify.design import Design, make_design
 from drivegain.identify.gains import (
     DEFAULT_ALPHA_GRID,
@@ -267,7 +267,7 @@ def _run_procedure(problem: Problem, options: Options, step: Step) -> ProcedureR
     apriori = robot.apriori_gains
     warnings: list[str] = []
     main = [a] if b is None else [a, b]
-    factors = [d.factors() for d in main]
+    factors, train_factors = split_factors(main, options.cv_fraction)
 
     wtls = None
     if options.gains is not None:
@@ -331,7 +331,7 @@ def _run_procedure(problem: Problem, options: Options, step: Step) -> ProcedureR
         final = case2 if case2 is not None else case1
         validation, designs = _validation_fits(problem, form, main, case1, case2, wtls, step)
         step("Cross-validation")
-        cv = cross_validate(main, final.gains, names, options.cv_fraction)
+        cv = cross_validate(main, final.gains, names, options.cv_fraction, train_factors)
     except BaseException:
         pending_forms.cancel()
         raise
@@ -384,8 +384,10 @@ def _form_fit(
     obp = problem.bases[form]
     od = [make_design(d.run, obp, form, problem.robot) for d in main]
     names = list(obp.names)
-    fit = fit_case(case, od, gains, names)
-    return FormFit(form=form, case=fit, cv=cross_validate(od, gains, names, cv_fraction))
+    factors, train_factors = split_factors(od, cv_fraction)
+    fit = fit_case(case, od, gains, names, factors)
+    cv = cross_validate(od, gains, names, cv_fraction, train_factors)
+    return FormFit(form=form, case=fit, cv=cv)
 
 
 def _validation_fits(

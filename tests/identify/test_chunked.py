@@ -14,6 +14,7 @@ import pytest
 from scipy.stats import chi2
 
 from drivegain.identify import cases, ml
+from drivegain.identify.crossval import split_factors, split_runs
 from drivegain.identify.design import ls_transform, make_design
 from drivegain.identify.eiv import eiv_test
 from drivegain.identify.hac import LongRunSum, bartlett_lag, long_run_covariance, sandwich
@@ -214,3 +215,23 @@ def test_compacting_in_place_equals_gathering() -> None:
     keep = np.flatnonzero(rng.random(10_000) < 0.7)
     expected = a[keep]
     np.testing.assert_array_equal(_compact(a, keep), expected)
+
+
+def test_split_factors_give_each_runs_whole_factor(pair) -> None:
+    whole, fitted = split_factors(pair, 0.3)
+    train, _ = split_runs(pair, 0.3)
+    for d, w, f, t in zip(pair, whole, fitted, train, strict=True):
+        direct = d.factors()
+        for j in range(d.n):  # R is unique up to the signs of its rows: compare RᵀR = AᵀA
+            gram = direct[j].T @ direct[j]
+            np.testing.assert_allclose(w[j].T @ w[j], gram, rtol=0, atol=1e-12 * np.abs(gram).max())
+        np.testing.assert_array_equal(f, t.factors())
+
+
+def test_a_fit_without_covariance_has_the_same_estimate(world, pair) -> None:
+    names = [f"p{i}" for i in range(pair[0].nb)]
+    full = cases.fit_case("x", pair, world.truth.gains, names)
+    bare = cases.fit_case("x", pair, world.truth.gains, names, covariance=False)
+    np.testing.assert_array_equal(bare.wls.x, full.wls.x)
+    assert bare.relative_error == full.relative_error
+    assert np.isnan(bare.base_std).all() and bare.lag == 0
