@@ -134,13 +134,15 @@ def estimate_gains(
     alpha: float | None = None,
     alpha_grid: Sequence[float] = DEFAULT_ALPHA_GRID,
     step: Step = no_step,
+    parallel: bool = False,
 ) -> GainIdentification:
     """Drive gains from an unloaded and a loaded run by the chosen estimator.
 
     ``a``, ``b``, ``payload``, ``apriori``, ``alpha``, ``alpha_grid`` and ``step`` are those of
     :func:`identify_gains` (``apriori`` and α serve the paper's estimator only); ``estimator``
     chooses :attr:`Estimator.ML` (default, :func:`~drivegain.identify.ml.ml_fit` and the
-    errors-in-variables test) or :attr:`Estimator.PAPER` (:func:`identify_gains`).
+    errors-in-variables test) or :attr:`Estimator.PAPER` (:func:`identify_gains`);
+    ``parallel``: the runs are long enough for the ML steps to use a forked child.
 
     Raises
     ------
@@ -158,7 +160,7 @@ def estimate_gains(
     # The model's arrays and the least squares are built once for the fit and the test.
     runs = [run_arrays(a, payload), run_arrays(b, payload)]
     ls = least_squares(runs, np.asarray(a.kt, float))
-    fit = ml_fit(a, b, payload, start=ls.theta, step=step, runs=runs)
+    fit = ml_fit(a, b, payload, start=ls.theta, step=step, runs=runs, parallel=parallel)
     step("errors-in-variables test")
     test = eiv_test(fit, a, b, payload, runs=runs, ls=ls)
     del runs

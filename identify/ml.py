@@ -37,6 +37,7 @@ import scipy.linalg
 
 from drivegain.config.payload import PAYLOAD_PARAMS, Payload
 from drivegain.errors import IdentificationError
+from drivegain.identify import forked
 from drivegain.identify.compact import CompactRegressor
 from drivegain.identify.design import Design
 from drivegain.identify.estimate import r_factor
@@ -355,6 +356,7 @@ def ml_fit(
     start: np.ndarray | None = None,
     step: Callable[[str], None] | None = None,
     runs: Sequence[RunArrays] | None = None,
+    parallel: bool = False,
 ) -> MLFit:
     """Maximum-likelihood drive gains from an unloaded run a and a loaded run b.
 
@@ -372,6 +374,9 @@ def ml_fit(
     runs
         ``[run_arrays(a, payload), run_arrays(b, payload)]`` when the caller has them already
         (built here otherwise).
+    parallel
+        The runs are long enough for each Gauss-Newton step to reduce run a in a forked child
+        while run b is reduced here (:mod:`.forked`; the same result either way).
 
     Returns
     -------
@@ -425,7 +430,7 @@ def ml_fit(
         # fixed (step halving until the whitened residuals shrink), then Σ from the new
         # residuals. Each half lowers the likelihood's negative.
         whiten = np.linalg.inv(np.linalg.cholesky(noise))
-        r_aug = _augmented_factor(theta, runs, kt_inv, whiten)
+        r_aug = _augmented_factor(theta, runs, kt_inv, whiten, parallel)
         if rounds == 1:
             # The whitened Jacobian has the rank of the Jacobian (the whitening is invertible).
             _check_rank(r_aug[:-1, :-1], names, nb, n)
@@ -499,20 +504,42 @@ def ml_fit(
 
 
 def _augmented_factor(
-    theta: np.ndarray, runs: Sequence[RunArrays], kt_inv: np.ndarray, whiten: np.ndarray
+    theta: np.ndarray,
+    runs: Sequence[RunArrays],
+    kt_inv: np.ndarray,
+    whiten: np.ndarray,
+    parallel: bool = False,
 ) -> np.ndarray:
     """R factor of ``[J̃ | ẽ]`` (whitened Jacobian of v̂ and residuals), built in row blocks.
 
     ``RᵀR = [J̃ | ẽ]ᵀ[J̃ | ẽ]``: its top-left block gives the Gauss-Newton normal matrix, its
-    last column J̃ᵀẽ in the rotated basis; no tall matrix is ever held whole.
+    last column J̃ᵀẽ in the rotated basis; no tall matrix is ever held whole. Each run is reduced
+    on its own and the factors are stacked; with ``parallel`` the first run's is computed in a
+    forked child (:mod:`.forked`) meanwhile, with the same result.
     """
+    first = forked.start(
+        "maximum-likelihood step",
+        lambda: _run_factor(theta, runs[0], kt_inv, whiten),
+        parallel=parallel and len(runs) > 1,
+    )
+    try:
+        rest = [_run_factor(theta, r, kt_inv, whiten) for r in runs[1:]]
+    except BaseException:
+        first.cancel()
+        raise
+    return r_factor(np.vstack([first.result(), *rest]))
+
+
+def _run_factor(
+    theta: np.ndarray, run: RunArrays, kt_inv: np.ndarray, whiten: np.ndarray
+) -> np.ndarray:
+    """R factor of one run's ``[J̃ | ẽ]`` (:func:`_augmented_factor`), (P + 1, P + 1)."""
     p = theta.size
     r = np.zeros((p + 1, p + 1))
-    for run in runs:
-        for sl in chunks(run.samples):
-            jw, ew = whitened_block(theta, run.rows(sl), kt_inv, whiten)
-            block = np.concatenate([jw.reshape(-1, p), ew.reshape(-1, 1)], axis=1)
-            r = r_factor(np.vstack([r, block]))
+    for sl in chunks(run.samples):
+        jw, ew = whitened_block(theta, run.rows(sl), kt_inv, whiten)
+        block = np.concatenate([jw.reshape(-1, p), ew.reshape(-1, 1)], axis=1)
+        r = r_factor(np.vstack([r, block]))
     return r
 
 

@@ -296,6 +296,7 @@ def _run_procedure(problem: Problem, options: Options, step: Step) -> ProcedureR
                     alpha=options.alpha,
                     alpha_grid=options.alpha_grid,
                     step=step,
+                    parallel=_long(main),
                 )
             except BaseException:
                 pending1.cancel()
