@@ -25,12 +25,10 @@ import numpy as np
 from drivegain.config.payload import Payload
 from drivegain.identify.design import Design
 from drivegain.identify.hac import LongRunSum
-from drivegain.identify.ml import (
-    LinearStart,
-    MLFit,
+from drivegain.identify.ml import LinearStart, MLFit, least_squares
+from drivegain.identify.mlmodel import (
     RunArrays,
     chunks,
-    least_squares,
     ls_rows,
     run_arrays,
     scores,

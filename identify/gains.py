@@ -22,7 +22,8 @@ from drivegain.errors import IdentificationError, InputError
 from drivegain.identify.design import Design, ls_transform
 from drivegain.identify.eiv import EIVTest, eiv_test
 from drivegain.identify.estimate import ScaleError
-from drivegain.identify.ml import MLFit, least_squares, ml_fit, run_arrays
+from drivegain.identify.ml import MLFit, least_squares, ml_fit
+from drivegain.identify.mlmodel import run_arrays
 from drivegain.identify.weighting import joint_sigma
 from drivegain.identify.wtls import SIGMA_MAX_ITER, WTLSFit, wtls_covariance, wtls_fit
 

@@ -244,7 +244,7 @@ def _write_raw(conn: Connection, array: np.ndarray) -> None:
     ``Connection.send_bytes``/``recv_bytes_into`` would do, but the receiving side assembles
     the whole message in a buffer of its own before copying it: hundreds of MB held twice.
     """
-    view = memoryview(array).cast("B")
+    view = array.data.cast("B")
     fd = conn.fileno()
     while view:
         view = view[os.write(fd, view) :]
@@ -258,7 +258,7 @@ def _read_raw(conn: Connection, array: np.ndarray) -> None:
     EOFError
         The pipe ended first (the worker died while sending).
     """
-    view = memoryview(array).cast("B")
+    view = array.data.cast("B")
     fd = conn.fileno()
     while view:
         got = os.readv(fd, [view])

@@ -20,17 +20,17 @@ choose (docs/model.md, "Estimators"), and a least squares with V as regressor (t
 payload on the right-hand side) is attenuated by current noise.
 
 The parameters are found by Gauss-Newton on the whitened residuals (normal matrix from R
-factors built in row blocks), Σ re-estimated at every step (a coordinate descent of the
-profiled likelihood, which converges to its stationary point), started from that linear least
-squares. The covariance is the HAC sandwich of
-:mod:`drivegain.identify.hac` on the per-sample scores, with the lag chosen from the whitened
-residuals' autocorrelation.
+factors built in row blocks; the model's currents and Jacobian are in :mod:`.mlmodel`), Σ
+re-estimated at every step (a coordinate descent of the profiled likelihood, which converges to
+its stationary point), started from that linear least squares. The covariance is the HAC
+sandwich of :mod:`drivegain.identify.hac` on the per-sample scores, with the lag chosen from the
+whitened residuals' autocorrelation.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.linalg
@@ -38,11 +38,20 @@ import scipy.linalg
 from drivegain.config.payload import PAYLOAD_PARAMS, Payload
 from drivegain.errors import IdentificationError
 from drivegain.identify import forked
-from drivegain.identify.compact import CompactRegressor
 from drivegain.identify.design import Design
 from drivegain.identify.estimate import r_factor
 from drivegain.identify.hac import LongRunSum, bartlett_lag, lag1_autocorrelation
 from drivegain.identify.hac import sandwich as hac_sandwich
+from drivegain.identify.mlmodel import (
+    RunArrays,
+    chunks,
+    ls_rows,
+    predict,
+    run_arrays,
+    scores,
+    split_theta,
+    whitened_block,
+)
 
 #: Gauss-Newton: stop when the step moves the whitened fit by less than this (squared norm,
 #: in units of the noise): the parameters then move by ~1e-5 of their standard deviations.
@@ -53,98 +62,8 @@ MAX_ITER = 50
 #: Gains further than this many decades from the least-squares start mean the scale is lost
 #: (least squares is attenuated by tens of percent, never by orders of magnitude).
 RUNAWAY_DECADES = 4.0
-#: Samples per row block when building factors and scores (bounds the memory of long runs).
-CHUNK = 2048
 #: Columns of the whitened Jacobian are dependent below this relative singular value.
 RANK_TOL = 1e-10
-
-
-@dataclass(frozen=True)
-class RunArrays:
-    """One run's data as the ML model uses it, read from the prepared run's regressor.
-
-    Nothing of the size of the regressor is copied here: :attr:`w`, :attr:`wu` and
-    :attr:`tau_known` are gathered when asked for, meant for row blocks (:meth:`rows`).
-
-    Attributes
-    ----------
-    v
-        Currents, A, (N, n).
-    regressor
-        The prepared run's regressor columns, (N, n, c) (the same object, not a copy).
-    base_idx
-        Its columns of the base parameters, (nb,).
-    unknown_idx
-        Its columns of the unknown payload parameters, (nu,); None for the unloaded run
-        (whose payload columns are zero).
-    known_idx, known_values
-        Its columns of the known payload parameters and their values (None when unloaded).
-    nu
-        Number of unknown payload parameters.
-    """
-
-    v: np.ndarray
-    regressor: CompactRegressor
-    base_idx: np.ndarray
-    unknown_idx: np.ndarray | None
-    known_idx: np.ndarray | None
-    known_values: np.ndarray
-    nu: int
-
-    @property
-    def samples(self) -> int:
-        return int(self.v.shape[0])
-
-    @property
-    def w(self) -> np.ndarray:
-        """Base-parameter regressor per joint, (N, n, nb) (a copy: use on row blocks)."""
-        return self.regressor.gather(self.base_idx)
-
-    @property
-    def wu(self) -> np.ndarray:
-        """Unknown payload parameters' columns per joint, (N, n, nu) (zero when unloaded)."""
-        if self.unknown_idx is None:
-            return np.zeros((self.samples, self.v.shape[1], self.nu))
-        return self.regressor.gather(self.unknown_idx)
-
-    @property
-    def tau_known(self) -> np.ndarray:
-        """Torque of the known payload parameters, N·m, (N, n) (zero when unloaded)."""
-        if self.known_idx is None:
-            return np.zeros((self.samples, self.v.shape[1]))
-        return np.asarray(self.regressor.gather(self.known_idx) @ self.known_values)
-
-    def rows(self, sl: slice) -> RunArrays:
-        """The samples ``sl`` (views, no copy)."""
-        return replace(self, v=self.v[sl], regressor=self.regressor.rows(sl))
-
-
-def run_arrays(d: Design, payload: Payload) -> RunArrays:
-    """The ML model's view of a design (:class:`RunArrays`).
-
-    Parameters
-    ----------
-    d
-        The design of one run.
-    payload
-        The payload of the loaded run, whose ``known`` parameters fix the scale; an unloaded
-        design gets zero payload columns of the same shape.
-    """
-    mask = payload.known_mask()
-    unknown = np.flatnonzero(~mask)
-    unknown_idx = known_idx = None
-    if d.payload_idx is not None:
-        unknown_idx = d.payload_idx[unknown]
-        known_idx = d.payload_idx[mask]
-    return RunArrays(
-        v=np.asarray(d.run.current, float),
-        regressor=d.run.regressor,
-        base_idx=np.asarray(d.base_idx),
-        unknown_idx=unknown_idx,
-        known_idx=known_idx,
-        known_values=np.asarray(payload.values[mask], float),
-        nu=int(unknown.size),
-    )
 
 
 @dataclass(frozen=True)
@@ -208,57 +127,6 @@ class MLFit:
         return np.sqrt(np.clip(np.diag(self.noise), 0.0, None))
 
 
-def _split(theta: np.ndarray, nb: int, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    return theta[:nb], theta[nb : nb + n], theta[nb + n :]
-
-
-def predict(theta: np.ndarray, run: RunArrays, kt_inv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Model currents v̂ (A, (N, n)) and the model torques mapped by K⁻¹ (N·m, (N, n)).
-
-    Evaluated in row blocks of :data:`CHUNK` samples: the gathered columns W, W_uL exist for
-    one block at a time.
-    """
-    nb, n = run.base_idx.size, run.v.shape[1]
-    g = theta[nb : nb + n]
-    u = np.empty((run.samples, n))
-    for sl in chunks(run.samples):
-        sub = run.rows(sl)
-        u[sl] = _torque(theta, sub, sub.w) @ kt_inv.T
-    return u / g[None, :], u
-
-
-def _torque(theta: np.ndarray, run: RunArrays, w: np.ndarray) -> np.ndarray:
-    """Model torques W χ + W_uL χ_uL + τ_kL of ``run``, N·m, (N, n); ``w`` is ``run.w``."""
-    chi, _, chi_u = _split(theta, run.base_idx.size, run.v.shape[1])
-    tau = w @ chi + run.tau_known
-    if chi_u.size:
-        tau = tau + run.wu @ chi_u
-    return np.asarray(tau)
-
-
-def jacobian(
-    theta: np.ndarray,
-    run: RunArrays,
-    kt_inv: np.ndarray,
-    v_hat: np.ndarray | None = None,
-    w: np.ndarray | None = None,
-) -> np.ndarray:
-    """∂v̂/∂θ per sample, (N, n, P), θ = (χ, g, χ_uL); ``v_hat``: :func:`predict`'s currents
-    at θ and ``w``: ``run.w``, when the caller has them (computed here otherwise)."""
-    nb, n = run.base_idx.size, run.v.shape[1]
-    g = theta[nb : nb + n]
-    m = kt_inv / g[:, None]  # diag(1/g) K⁻¹
-    if v_hat is None:
-        v_hat, _ = predict(theta, run, kt_inv)
-    jac = np.zeros((run.samples, n, theta.size))
-    jac[:, :, :nb] = m @ (run.w if w is None else w)  # batched over samples
-    idx = np.arange(n)
-    jac[:, idx, nb + idx] = -v_hat / g[None, :]
-    if theta.size > nb + n:
-        jac[:, :, nb + n :] = m @ run.wu
-    return jac
-
-
 #: Residual variance taken as round-off, relative to each joint's mean square current: an error
 #: of 1e-8 of the signal is the arithmetic's (and a 1e-4 measurement's weight moves by 1e-8).
 ROUND_OFF_VARIANCE = 1e-16
@@ -272,20 +140,6 @@ def _noise(resid: Sequence[np.ndarray], mean_square: np.ndarray) -> np.ndarray:
     cov = e.T @ e / e.shape[0]
     floor = np.maximum(ROUND_OFF_VARIANCE * mean_square, 1e-300)
     return np.asarray(cov + np.diag(floor))
-
-
-def ls_rows(run: RunArrays, kt: np.ndarray) -> np.ndarray:
-    """Rows ``[−W | V K | −W_uL]`` of the least squares with V as regressor, (N, n, P).
-
-    Their product with θ = (χ, g, χ_uL) minus the known payload's torque is the equation error
-    of every sample and joint, N·m.
-    """
-    nb, n, nu = run.base_idx.size, run.v.shape[1], run.nu
-    m = np.zeros((run.samples, n, nb + n + nu))
-    m[:, :, :nb] = -run.w
-    m[:, :, nb : nb + n] = run.v[:, None, :] * kt[None, :, :]
-    m[:, :, nb + n :] = -run.wu
-    return m
 
 
 @dataclass(frozen=True)
@@ -485,7 +339,7 @@ def ml_fit(
         meat.end_run()
     rows = sum(r.samples for r in runs) * n
     cov = hac_sandwich(bread, meat.meat(), rows, theta.size)
-    chi, g, chi_u = _split(theta, nb, n)
+    chi, g, chi_u = split_theta(theta, nb, n)
     return MLFit(
         chi=chi.copy(),
         gains=g.copy(),
@@ -543,39 +397,11 @@ def _run_factor(
     return r
 
 
-def chunks(samples: int) -> list[slice]:
-    """Row blocks of :data:`CHUNK` samples covering ``samples``."""
-    return [slice(k, min(k + CHUNK, samples)) for k in range(0, samples, CHUNK)]
-
-
 def _whitened_residuals(
     theta: np.ndarray, run: RunArrays, kt_inv: np.ndarray, whiten: np.ndarray
 ) -> np.ndarray:
     """ẽ_k = L⁻¹ (v_k − v̂_k), (N, n), with ``whiten`` = L⁻¹ (Σ = L Lᵀ)."""
     return np.asarray((run.v - predict(theta, run, kt_inv)[0]) @ whiten.T)
-
-
-def whitened_block(
-    theta: np.ndarray, run: RunArrays, kt_inv: np.ndarray, whiten: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Whitened Jacobian J̃_k = L⁻¹ ∂v̂_k/∂θ, (N, n, P), and residuals ẽ_k, (N, n), of ``run``.
-
-    Meant for row blocks (:func:`chunks`): the Jacobian is the largest array of the fit.
-    """
-    if run.samples > CHUNK:
-        v_hat, _ = predict(theta, run, kt_inv)
-        jw = whiten @ jacobian(theta, run, kt_inv, v_hat)
-    else:  # one row block, as predict evaluates it: its columns W are gathered once
-        nb, n = run.base_idx.size, run.v.shape[1]
-        w = run.w
-        v_hat = (_torque(theta, run, w) @ kt_inv.T) / theta[nb : nb + n][None, :]
-        jw = whiten @ jacobian(theta, run, kt_inv, v_hat, w)
-    return jw, np.asarray((run.v - v_hat) @ whiten.T)
-
-
-def scores(jw: np.ndarray, ew: np.ndarray) -> np.ndarray:
-    """Per-sample scores ψ_k = J̃_kᵀ ẽ_k, (N, P): θ̂ − θ ≈ H⁻¹ Σ_k ψ_k to first order."""
-    return np.asarray(np.matmul(ew[:, None, :], jw)[:, 0, :])
 
 
 def _check_rank(jac: np.ndarray, names: Sequence[str], nb: int, n: int) -> None:

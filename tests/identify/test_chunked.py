@@ -13,12 +13,13 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from drivegain.identify import cases, ml
+from drivegain.identify import cases, mlmodel
 from drivegain.identify.crossval import split_factors, split_runs
 from drivegain.identify.design import ls_transform, make_design
 from drivegain.identify.eiv import eiv_test
 from drivegain.identify.hac import LongRunSum, bartlett_lag, long_run_covariance, sandwich
-from drivegain.identify.ml import least_squares, ls_rows, ml_fit, run_arrays, whitened_block
+from drivegain.identify.ml import least_squares, ml_fit
+from drivegain.identify.mlmodel import ls_rows, run_arrays, whitened_block
 from drivegain.identify.prepare import _compact
 from drivegain.identify.weighting import joint_sigma
 
@@ -108,7 +109,7 @@ def _whole_least_squares(runs, kt):
 
 @pytest.mark.parametrize("chunk", [37, 500, 100_000])
 def test_block_least_squares_equals_the_whole_matrix_one(world, pair, monkeypatch, chunk) -> None:
-    monkeypatch.setattr(ml, "CHUNK", chunk)
+    monkeypatch.setattr(mlmodel, "CHUNK", chunk)
     runs = [run_arrays(d, world.payload) for d in pair]
     kt = np.asarray(pair[0].kt, float)
     theta, w, hessian = _whole_least_squares(runs, kt)
@@ -122,7 +123,7 @@ def test_ml_fit_and_eiv_test_do_not_depend_on_the_block_size(world, pair, monkey
     a, b = pair
     outs = []
     for chunk in (2048, 53):
-        monkeypatch.setattr(ml, "CHUNK", chunk)
+        monkeypatch.setattr(mlmodel, "CHUNK", chunk)
         fit = ml_fit(a, b, world.payload)
         outs.append((fit, eiv_test(fit, a, b, world.payload)))
     (f1, t1), (f2, t2) = outs
