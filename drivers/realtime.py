@@ -1,23 +1,24 @@
 """One realtime policy for everything that supervises or simulates drives.
 
 What a process does to keep its cycle on time, in one place: the garbage collector's freeze
-(:mod:`.gcfreeze`), an optional CPU affinity, and SCHED_FIFO for the thread that runs the cycle
-loop. The acquisition rig owns one :class:`RealtimePolicy` and enters :meth:`~RealtimePolicy.
-process` once for its life (boot to close, across every run of a daemon); a session enters
-:meth:`~RealtimePolicy.cycle_thread` on its cycle thread for one run; the simulated drives' child
-process enters :meth:`~RealtimePolicy.process` for its own life; the acquisition benchmark uses
-the same object for its baseline loop.
+(:mod:`.gcfreeze`), an optional CPU affinity, a short interpreter switch interval, and SCHED_FIFO
+for the thread that runs the cycle loop. The acquisition rig owns one :class:`RealtimePolicy` and
+enters :meth:`~RealtimePolicy.process` once for its life (boot to close, across every run of a
+daemon); a session enters :meth:`~RealtimePolicy.cycle_thread` on its cycle thread for one run;
+the simulated drives' child process enters :meth:`~RealtimePolicy.process` for its own life; the
+acquisition benchmark uses the same object for its baseline loop.
 
-Scheduling changes are undone on exit (the previous policy and priority, the previous CPU set),
-so a thread or process goes on as it was: a daemon's main thread is never left at SCHED_FIFO.
-A refused SCHED_FIFO (no ``CAP_SYS_NICE``, no ``RLIMIT_RTPRIO``) is not an error: the cycle
-runs at normal priority and the caller is told why.
+Scheduling changes are undone on exit (the previous policy and priority, the previous CPU set,
+the previous switch interval), so a thread or process goes on as it was: a daemon's main thread
+is never left at SCHED_FIFO. A refused SCHED_FIFO (no ``CAP_SYS_NICE``, no ``RLIMIT_RTPRIO``) is
+not an error: the cycle runs at normal priority and the caller is told why.
 """
 
 from __future__ import annotations
 
 import logging
 import os
+import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -29,6 +30,11 @@ log = logging.getLogger(__name__)
 
 #: Highest SCHED_FIFO priority on Linux.
 MAX_FIFO_PRIORITY = 99
+#: The interpreter's switch interval while a realtime cycle runs, s. A thread that wakes while
+#: another Python thread of the process computes (the recorder encoding a chunk, the bus reader)
+#: waits for the interpreter lock until that thread is asked to drop it, one switch interval
+#: (5 ms by default: more than a 250 Hz period). ``benchmarks/bench_handoff.py`` measures it.
+REALTIME_SWITCH_INTERVAL_S = 0.0005
 
 
 @dataclass(frozen=True)
@@ -71,6 +77,10 @@ class RealtimePolicy:
     cpus
         CPUs the process runs on in :meth:`process` (``os.sched_setaffinity``); None = leave
         the affinity alone.
+    switch_interval_s
+        The interpreter's switch interval in :meth:`process` (``sys.setswitchinterval``), s:
+        how long the cycle thread may wait for the interpreter lock while another thread of the
+        process computes; None = leave it (5 ms by default).
 
     A frozen, picklable value: the simulated drives' child process receives it over its pipe.
     """
@@ -78,11 +88,16 @@ class RealtimePolicy:
     gc_freeze: bool = True
     fifo_priority: int = 0
     cpus: frozenset[int] | None = None
+    switch_interval_s: float | None = None
 
     def __post_init__(self) -> None:
         if not 0 <= self.fifo_priority <= MAX_FIFO_PRIORITY:
             raise ConfigError(
                 f"SCHED_FIFO priority must be 0..{MAX_FIFO_PRIORITY}, got {self.fifo_priority}"
+            )
+        if self.switch_interval_s is not None and not 0.0 < self.switch_interval_s <= 1.0:
+            raise ConfigError(
+                f"the switch interval must be in (0, 1] s, got {self.switch_interval_s}"
             )
         if self.cpus is not None:
             if not self.cpus:
@@ -91,13 +106,18 @@ class RealtimePolicy:
 
     @contextmanager
     def process(self) -> Iterator[None]:
-        """The process-wide part (garbage-collector freeze, CPU affinity) inside the block.
+        """The process-wide part (garbage-collector freeze, CPU affinity, the interpreter's
+        switch interval) inside the block.
 
-        Nests: the freeze is reference-counted (the last exit unfreezes) and the affinity each
-        block set is restored when it ends. Enter it before starting the threads that supervise
-        or simulate drives, as threads started later inherit the affinity of their creator.
+        Nests: the freeze is reference-counted (the last exit unfreezes); the affinity and the
+        switch interval each block set are restored when it ends. Enter it before starting the
+        threads that supervise or simulate drives, as threads started later inherit the
+        affinity of their creator.
         """
         saved = _set_affinity(self.cpus) if self.cpus is not None else {}
+        switch = sys.getswitchinterval()
+        if self.switch_interval_s is not None:
+            sys.setswitchinterval(self.switch_interval_s)
         try:
             if self.gc_freeze:
                 # one full collection first (if no other hold is in force, so no drive is
@@ -109,6 +129,7 @@ class RealtimePolicy:
                 if self.gc_freeze:
                     gcfreeze.release()
         finally:
+            sys.setswitchinterval(switch)
             _restore_affinity(saved)
 
     @contextmanager

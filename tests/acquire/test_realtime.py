@@ -1,11 +1,12 @@
 """The rig's realtime policy: the freeze from open to close, SCHED_FIFO on a session's cycle
-thread and its restoration, a refusal recorded in the log."""
+thread and its restoration, a refusal recorded in the log, the interpreter's switch interval."""
 
 from __future__ import annotations
 
 import errno
 import gc
 import os
+import sys
 import threading
 from collections.abc import Callable
 from pathlib import Path
@@ -18,8 +19,9 @@ from drivegain.acquire.request import RunRequest, prepare_run
 from drivegain.acquire.rig import Rig, realtime_policy
 from drivegain.acquire.session import RunResult, RunState, Session
 from drivegain.drivers import gcfreeze
-from drivegain.drivers.realtime import RealtimePolicy
+from drivegain.drivers.realtime import REALTIME_SWITCH_INTERVAL_S, RealtimePolicy
 from drivegain.drivers.simprocess import SimulatedCellProcess
+from drivegain.errors import ConfigError
 from drivegain.formats.log import EventLevel
 from drivegain.formats.logreader import read_run
 
@@ -29,9 +31,50 @@ def test_the_policy_of_a_configuration(make_config: Callable[..., Path]) -> None
     realtime = load_acquisition_config(
         make_config(clock="realtime", acquisition="rt_priority = 80")
     )
-    # a lockstep cycle has no deadline: no SCHED_FIFO, but the freeze all the same
+    # a lockstep cycle has no deadline: no SCHED_FIFO, no short switch interval, but the
+    # freeze all the same
     assert realtime_policy(lockstep) == RealtimePolicy(gc_freeze=True, fifo_priority=0)
-    assert realtime_policy(realtime) == RealtimePolicy(gc_freeze=True, fifo_priority=80)
+    assert realtime_policy(realtime) == RealtimePolicy(
+        gc_freeze=True, fifo_priority=80, switch_interval_s=REALTIME_SWITCH_INTERVAL_S
+    )
+
+
+def test_the_switch_interval_is_set_in_the_block_and_restored_after_nesting() -> None:
+    before = sys.getswitchinterval()
+    with RealtimePolicy(gc_freeze=False, switch_interval_s=0.0005).process():
+        assert sys.getswitchinterval() == pytest.approx(0.0005)
+        with RealtimePolicy(gc_freeze=False, switch_interval_s=0.002).process():
+            assert sys.getswitchinterval() == pytest.approx(0.002)
+        assert sys.getswitchinterval() == pytest.approx(0.0005)
+        with RealtimePolicy(gc_freeze=False).process():  # None: left as it is
+            assert sys.getswitchinterval() == pytest.approx(0.0005)
+    assert sys.getswitchinterval() == before
+    with (
+        pytest.raises(RuntimeError),
+        RealtimePolicy(gc_freeze=False, switch_interval_s=0.001).process(),
+    ):
+        raise RuntimeError("the block fails")
+    assert sys.getswitchinterval() == before
+
+
+@pytest.mark.parametrize("bad", [0.0, -1e-3, 2.0])
+def test_a_switch_interval_out_of_range_is_refused(bad: float) -> None:
+    with pytest.raises(ConfigError, match="switch interval"):
+        RealtimePolicy(switch_interval_s=bad)
+
+
+def test_a_realtime_rig_runs_with_the_short_switch_interval(
+    make_config: Callable[..., Path],
+) -> None:
+    cfg = load_acquisition_config(make_config(clock="realtime"))
+    before = sys.getswitchinterval()
+    rig = Rig(cfg)
+    rig.open()
+    try:
+        assert sys.getswitchinterval() == pytest.approx(REALTIME_SWITCH_INTERVAL_S)
+    finally:
+        rig.close()
+    assert sys.getswitchinterval() == before
 
 
 def test_a_rig_holds_the_freeze_from_open_to_close(make_config: Callable[..., Path]) -> None:
