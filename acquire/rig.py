@@ -20,7 +20,7 @@ from drivegain.drivers.bus import open_network
 from drivegain.drivers.clock import Clock
 from drivegain.drivers.ipcbus import INTERFACE as IPC_INTERFACE
 from drivegain.drivers.master import DriveEvent, Master, MasterHeartbeat, Timeouts
-from drivegain.drivers.realtime import REALTIME_SWITCH_INTERVAL_S, RealtimePolicy
+from drivegain.drivers.realtime import RealtimePolicy
 from drivegain.drivers.sim import SimConfig, SimulatedCell
 from drivegain.drivers.simprocess import SimulatedCellProcess, drives_in_child_process
 from drivegain.lifecycle import Closing, release_quietly
@@ -41,6 +41,13 @@ def simulation_for_run(sim: SimConfig, payload: Path | None, seed: int | None = 
     if seed is not None:
         changes["seed"] = seed
     return dataclasses.replace(sim, **changes) if changes else sim
+
+
+#: The interpreter's switch interval while a realtime cycle runs, s. A thread that wakes while
+#: another Python thread of the process computes (the recorder encoding a chunk, the bus reader)
+#: waits for the interpreter lock until that thread is asked to drop it, one switch interval
+#: (5 ms by default: more than a 250 Hz period). ``benchmarks/bench_handoff.py`` measures it.
+REALTIME_SWITCH_INTERVAL_S = 0.0005
 
 
 def realtime_policy(cfg: AcquisitionConfig) -> RealtimePolicy:

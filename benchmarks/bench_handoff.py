@@ -7,7 +7,7 @@ thread of a realtime session), while another thread of the same process writes a
 it can through :class:`drivegain.formats.logwriter.LogWriter` (JSON, raw, ROS 2 messages and
 zstd chunks: the recorder's work, without pause). Its wake-up delay beyond the 1 ms is measured
 with the interpreter's default switch interval (the baseline, measured in the same run) and
-with the realtime policy's (:data:`drivegain.drivers.realtime.REALTIME_SWITCH_INTERVAL_S`),
+with the realtime policy's (:data:`drivegain.acquire.rig.REALTIME_SWITCH_INTERVAL_S`),
 alternated, and with no writer at all (the machine's own wake-up latency). The writer's
 throughput is printed too: a shorter interval costs it more hand-offs.
 """
@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drivegain.drivers.realtime import REALTIME_SWITCH_INTERVAL_S
+from drivegain.acquire.rig import REALTIME_SWITCH_INTERVAL_S
 from drivegain.formats.log import RunMetadata
 from drivegain.formats.logwriter import LogWriter
 

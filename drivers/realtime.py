@@ -30,11 +30,6 @@ log = logging.getLogger(__name__)
 
 #: Highest SCHED_FIFO priority on Linux.
 MAX_FIFO_PRIORITY = 99
-#: The interpreter's switch interval while a realtime cycle runs, s. A thread that wakes while
-#: another Python thread of the process computes (the recorder encoding a chunk, the bus reader)
-#: waits for the interpreter lock until that thread is asked to drop it, one switch interval
-#: (5 ms by default: more than a 250 Hz period). ``benchmarks/bench_handoff.py`` measures it.
-REALTIME_SWITCH_INTERVAL_S = 0.0005
 
 
 @dataclass(frozen=True)

@@ -16,10 +16,10 @@ import pytest
 
 from drivegain.acquire.config import load_acquisition_config
 from drivegain.acquire.request import RunRequest, prepare_run
-from drivegain.acquire.rig import Rig, realtime_policy
+from drivegain.acquire.rig import REALTIME_SWITCH_INTERVAL_S, Rig, realtime_policy
 from drivegain.acquire.session import RunResult, RunState, Session
 from drivegain.drivers import gcfreeze
-from drivegain.drivers.realtime import REALTIME_SWITCH_INTERVAL_S, RealtimePolicy
+from drivegain.drivers.realtime import RealtimePolicy
 from drivegain.drivers.simprocess import SimulatedCellProcess
 from drivegain.errors import ConfigError
 from drivegain.formats.log import EventLevel
