@@ -43,28 +43,17 @@ def simulation_for_run(sim: SimConfig, payload: Path | None, seed: int | None = 
     return dataclasses.replace(sim, **changes) if changes else sim
 
 
-#: The interpreter's switch interval while a realtime cycle runs, s. A thread that wakes while
-#: another Python thread of the process computes (the recorder encoding a chunk, the bus reader)
-#: waits for the interpreter lock until that thread is asked to drop it, one switch interval
-#: (5 ms by default: more than a 250 Hz period). ``benchmarks/bench_handoff.py`` measures it.
-REALTIME_SWITCH_INTERVAL_S = 0.0005
-
-
 def realtime_policy(cfg: AcquisitionConfig) -> RealtimePolicy:
     """The realtime policy of a configuration.
 
     The garbage-collector freeze always (lockstep time-outs are generous, but a full collection
     still stalls the bus reader for up to 0.26 s); SCHED_FIFO ``rt_priority`` for the cycle
-    thread and the short switch interval in realtime only, as a lockstep cycle has no deadline
-    to keep (and the default interval costs its threads fewer hand-offs).
+    thread in realtime only, as a lockstep cycle has no deadline to keep. The interpreter's
+    switch interval is left at its default (docs/realtime.md: a shorter one was measured and
+    lost more cycles).
     """
-    if cfg.clock != Clock.REALTIME:
-        return RealtimePolicy(gc_freeze=True, fifo_priority=0)
-    return RealtimePolicy(
-        gc_freeze=True,
-        fifo_priority=cfg.rt_priority,
-        switch_interval_s=REALTIME_SWITCH_INTERVAL_S,
-    )
+    prio = cfg.rt_priority if cfg.clock == Clock.REALTIME else 0
+    return RealtimePolicy(gc_freeze=True, fifo_priority=prio)
 
 
 class Rig(Closing):

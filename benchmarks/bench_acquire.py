@@ -195,7 +195,7 @@ def run_session(
             if sample_every and s.cycle % sample_every == 0:
                 samples.append((s.t, rss_mb()))
 
-        rig = Rig(cfg)
+        rig = _rig(cfg)
         with rig as master:
             session = Session(
                 cfg, master, prepared, on_cycle=on_cycle, policy=rig.policy, pipelined=pipelined
@@ -208,6 +208,16 @@ def run_session(
         for mod in _CHECKERS:
             mod.check_bus_load = _original_check
     return session, wall, cpu, samples
+
+
+#: ``--switch-interval-s``: the interpreter's switch interval of the rigs (None: left as it is).
+_SWITCH_INTERVAL_S: float | None = None
+
+
+def _rig(cfg: AcquisitionConfig) -> Rig:
+    """The configuration's rig, with ``--switch-interval-s`` in its realtime policy."""
+    policy = dataclasses.replace(realtime_policy(cfg), switch_interval_s=_SWITCH_INTERVAL_S)
+    return Rig(cfg, policy=policy)
 
 
 def baseline_pacing(period_s: float, seconds: float, policy: RealtimePolicy) -> LoopStats:
@@ -230,7 +240,7 @@ def baseline_pacing(period_s: float, seconds: float, policy: RealtimePolicy) -> 
 
 def baseline_under_load(cfg: AcquisitionConfig, seconds: float) -> LoopStats:
     """The bare loop while the same simulated drives run enabled (holding position) beside it."""
-    rig = Rig(cfg)
+    rig = _rig(cfg)
     with rig as master:
         master.enable()
         return baseline_pacing(cfg.period_s, seconds, rig.policy)
@@ -284,7 +294,8 @@ def realtime(
     probe = config("realtime", 1.0 / rates[0], folder, sim_host=sim_host, rt_priority=rt_priority)
     print(
         f"\n== realtime, 6 simulated drives in {where}, {duration:g} s of excitation per rate, "
-        f"SCHED_FIFO {rt_priority}: {fifo_granted(probe)}, spin_s {spin_s:g} =="
+        f"SCHED_FIFO {rt_priority}: {fifo_granted(probe)}, spin_s {spin_s:g}, "
+        f"switch interval {_SWITCH_INTERVAL_S or sys.getswitchinterval():g} s =="
     )
     print(_RT_HEADER)
     traj = gentle_trajectory(duration, folder)
@@ -550,6 +561,13 @@ def main(argv: list[str] | None = None) -> int:
         help="realtime: [acquisition] spin_s of the sessions (busy-waited end of each period, s)",
     )
     p.add_argument(
+        "--switch-interval-s",
+        type=float,
+        default=None,
+        help="realtime: the interpreter's switch interval of the rigs, s (default: left at "
+        "Python's 0.005; docs/realtime.md)",
+    )
+    p.add_argument(
         "--same-cycle",
         action="store_true",
         help="realtime: also run the same-cycle master (waits for each cycle's own TPDOs)",
@@ -563,6 +581,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument("--repeats", type=int, default=1, help="--baseline-ref: runs of each")
     args = p.parse_args(argv)
+    global _SWITCH_INTERVAL_S
+    _SWITCH_INTERVAL_S = args.switch_interval_s
     quiet_libraries()
     with tempfile.TemporaryDirectory(prefix="bench-acquire-") as tmp:
         folder = Path(tmp)

@@ -1,8 +1,8 @@
 """One realtime policy for everything that supervises or simulates drives.
 
 What a process does to keep its cycle on time, in one place: the garbage collector's freeze
-(:mod:`.gcfreeze`), an optional CPU affinity, a short interpreter switch interval, and SCHED_FIFO
-for the thread that runs the cycle loop. The acquisition rig owns one :class:`RealtimePolicy` and
+(:mod:`.gcfreeze`), an optional CPU affinity and interpreter switch interval, and SCHED_FIFO for
+the thread that runs the cycle loop. The acquisition rig owns one :class:`RealtimePolicy` and
 enters :meth:`~RealtimePolicy.process` once for its life (boot to close, across every run of a
 daemon); a session enters :meth:`~RealtimePolicy.cycle_thread` on its cycle thread for one run;
 the simulated drives' child process enters :meth:`~RealtimePolicy.process` for its own life; the
@@ -73,9 +73,9 @@ class RealtimePolicy:
         CPUs the process runs on in :meth:`process` (``os.sched_setaffinity``); None = leave
         the affinity alone.
     switch_interval_s
-        The interpreter's switch interval in :meth:`process` (``sys.setswitchinterval``), s:
-        how long the cycle thread may wait for the interpreter lock while another thread of the
-        process computes; None = leave it (5 ms by default).
+        The interpreter's switch interval in :meth:`process` (``sys.setswitchinterval``), s;
+        None = leave it (5 ms by default, what the rig keeps: docs/realtime.md). The
+        acquisition benchmark's ``--switch-interval-s`` sets it to measure the effect.
 
     A frozen, picklable value: the simulated drives' child process receives it over its pipe.
     """

@@ -16,7 +16,7 @@ import pytest
 
 from drivegain.acquire.config import load_acquisition_config
 from drivegain.acquire.request import RunRequest, prepare_run
-from drivegain.acquire.rig import REALTIME_SWITCH_INTERVAL_S, Rig, realtime_policy
+from drivegain.acquire.rig import Rig, realtime_policy
 from drivegain.acquire.session import RunResult, RunState, Session
 from drivegain.drivers import gcfreeze
 from drivegain.drivers.realtime import RealtimePolicy
@@ -31,12 +31,10 @@ def test_the_policy_of_a_configuration(make_config: Callable[..., Path]) -> None
     realtime = load_acquisition_config(
         make_config(clock="realtime", acquisition="rt_priority = 80")
     )
-    # a lockstep cycle has no deadline: no SCHED_FIFO, no short switch interval, but the
-    # freeze all the same
+    # a lockstep cycle has no deadline: no SCHED_FIFO, but the freeze all the same; the switch
+    # interval is left as it is in both
     assert realtime_policy(lockstep) == RealtimePolicy(gc_freeze=True, fifo_priority=0)
-    assert realtime_policy(realtime) == RealtimePolicy(
-        gc_freeze=True, fifo_priority=80, switch_interval_s=REALTIME_SWITCH_INTERVAL_S
-    )
+    assert realtime_policy(realtime) == RealtimePolicy(gc_freeze=True, fifo_priority=80)
 
 
 def test_the_switch_interval_is_set_in_the_block_and_restored_after_nesting() -> None:
@@ -61,20 +59,6 @@ def test_the_switch_interval_is_set_in_the_block_and_restored_after_nesting() ->
 def test_a_switch_interval_out_of_range_is_refused(bad: float) -> None:
     with pytest.raises(ConfigError, match="switch interval"):
         RealtimePolicy(switch_interval_s=bad)
-
-
-def test_a_realtime_rig_runs_with_the_short_switch_interval(
-    make_config: Callable[..., Path],
-) -> None:
-    cfg = load_acquisition_config(make_config(clock="realtime"))
-    before = sys.getswitchinterval()
-    rig = Rig(cfg)
-    rig.open()
-    try:
-        assert sys.getswitchinterval() == pytest.approx(REALTIME_SWITCH_INTERVAL_S)
-    finally:
-        rig.close()
-    assert sys.getswitchinterval() == before
 
 
 def test_a_rig_holds_the_freeze_from_open_to_close(make_config: Callable[..., Path]) -> None:
