@@ -319,17 +319,27 @@ def filtered_derivatives(
     their neighbours; they lie in the border that decimation trims.
     """
     qf, _, _ = derivatives(q, rate_hz, settings, source=source)
-    h = 1.0 / rate_hz
-    qd = np.empty_like(qf)
-    qdd = np.empty_like(qf)
-    qd[2:-2] = (qf[:-4] - 8.0 * qf[1:-3] + 8.0 * qf[3:-1] - qf[4:]) / (12.0 * h)
-    qdd[2:-2] = (-qf[:-4] + 16.0 * qf[1:-3] - 30.0 * qf[2:-2] + 16.0 * qf[3:-1] - qf[4:]) / (
-        12.0 * h * h
-    )
-    for d in (qd, qdd):
-        d[:2] = d[2]
-        d[-2:] = d[-3]
+    qd, qdd = np.empty_like(qf), np.empty_like(qf)
+    for s in range(0, qf.shape[0], CHUNK):
+        qd[s : s + CHUNK], qdd[s : s + CHUNK] = five_point(qf, rate_hz, s, s + CHUNK)
     return qf, qd, qdd
+
+
+def five_point(
+    qf: np.ndarray, rate_hz: float, start: int, stop: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """The five-point velocity and acceleration (rad/s, rad/s²) of samples ``start:stop`` of the
+    filtered positions ``qf`` (:func:`filtered_derivatives`; ``stop`` is clipped to the run).
+
+    A window of a long run needs no velocity and acceleration of the whole run in memory.
+    """
+    n = qf.shape[0]
+    k = np.clip(np.arange(start, min(stop, n)), 2, n - 3)  # the ends repeat their neighbours
+    h = 1.0 / rate_hz
+    a, b, c, d, e = qf[k - 2], qf[k - 1], qf[k], qf[k + 1], qf[k + 2]
+    qd = (a - 8.0 * b + 8.0 * d - e) / (12.0 * h)
+    qdd = (-a + 16.0 * b - 30.0 * c + 16.0 * d - e) / (12.0 * h * h)
+    return qd, qdd
 
 
 #: A joint slower than this fraction of its RMS speed counts as still (for :func:`at_rest`).
@@ -474,7 +484,9 @@ def prepare_recording(
     current = aligned_current(np.asarray(current, dtype=float), settings.current_delay)
     n_samples, n = q.shape
     src = source or None
-    qf, qd, qdd = filtered_derivatives(q, rate_hz, settings, source=src)
+    # Velocities and accelerations exist for a window at a time (five_point), except the
+    # velocity of the whole run for a moment, to find the samples at rest.
+    qf = derivatives(q, rate_hz, settings, source=src)[0]
     f = settings.decimate
     pad = decimation_memory(f)
     size = max(CHUNK, 2 * pad)
@@ -484,7 +496,11 @@ def prepare_recording(
     # Decimate the currents once, whole: they are small. Same filter, so the same result.
     # The rest indicator goes through the same filter: a kept sample's filter window holds
     # (almost) no sample at rest.
+    qd = np.empty_like(qf)
+    for s in range(0, n_samples, CHUNK):
+        qd[s : s + CHUNK] = five_point(qf, rate_hz, s, s + CHUNK)[0]
     rest = at_rest(qd)
+    del qd
     (c_all, rest_d) = parallel_decimate([current, rest.astype(float)], f, 0, source=src)
     nd = c_all.shape[0]
     w_all = np.zeros((nd, rows.size))  # only the series that are not zero everywhere
@@ -500,7 +516,7 @@ def prepare_recording(
         for s in range(start, hi, CHUNK):
             e = min(hi, s + CHUNK)
             window[s - lo : e - lo] = regressor_columns(
-                model, qf[s:e], qd[s:e], qdd[s:e], columns, (rows, cols)
+                model, qf[s:e], *five_point(qf, rate_hz, s, e), columns, (rows, cols)
             )
         # Decimated sample k of this window is input sample lo + k·f (lo is a multiple of f).
         first = (a - lo) // f

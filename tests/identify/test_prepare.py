@@ -15,6 +15,7 @@ from drivegain.identify import prepare
 from drivegain.identify.prepare import (
     coupled_coulomb_columns,
     filtered_derivatives,
+    five_point,
     prepare_recording,
     regressor_columns,
     trajectory_bandwidth,
@@ -142,3 +143,21 @@ def test_decimation_stage_equals_scipy_decimate() -> None:
     for q in (2, 5, MAX_STAGE):
         expected = sps.decimate(x, q, ftype="iir", axis=0, zero_phase=True)
         np.testing.assert_array_equal(_decimate_stage(x, q), expected)
+
+
+def test_five_point_windows_equal_the_whole_run_stencils() -> None:
+    rng = np.random.default_rng(8)
+    qf, rate = rng.standard_normal((1000, 3)), 250.0
+    h = 1.0 / rate
+    qd = np.empty_like(qf)
+    qdd = np.empty_like(qf)
+    qd[2:-2] = (qf[:-4] - 8.0 * qf[1:-3] + 8.0 * qf[3:-1] - qf[4:]) / (12.0 * h)
+    qdd[2:-2] = (-qf[:-4] + 16.0 * qf[1:-3] - 30.0 * qf[2:-2] + 16.0 * qf[3:-1] - qf[4:]) / (
+        12.0 * h * h
+    )
+    for d in (qd, qdd):  # the two samples at each end repeat their neighbours
+        d[:2], d[-2:] = d[2], d[-3]
+    for start, stop in [(0, 1000), (0, 1), (1, 7), (500, 613), (995, 1000), (990, 5000)]:
+        got_qd, got_qdd = five_point(qf, rate, start, stop)
+        np.testing.assert_array_equal(got_qd, qd[start:stop])
+        np.testing.assert_array_equal(got_qdd, qdd[start:stop])
