@@ -186,16 +186,13 @@ def whitened_block(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Whitened Jacobian J̃_k = L⁻¹ ∂v̂_k/∂θ, (N, n, P), and residuals ẽ_k, (N, n), of ``run``.
 
-    Meant for row blocks (:func:`chunks`): the Jacobian is the largest array of the fit.
+    Meant for row blocks (:func:`chunks`): the Jacobian is the largest array of the fit, and
+    the block's columns W are gathered once for the currents and the Jacobian.
     """
-    if run.samples > CHUNK:
-        v_hat, _ = predict(theta, run, kt_inv)
-        jw = whiten @ jacobian(theta, run, kt_inv, v_hat)
-    else:  # one row block, as predict evaluates it: its columns W are gathered once
-        nb, n = run.base_idx.size, run.v.shape[1]
-        w = run.w
-        v_hat = (_torque(theta, run, w) @ kt_inv.T) / theta[nb : nb + n][None, :]
-        jw = whiten @ jacobian(theta, run, kt_inv, v_hat, w)
+    nb, n = run.base_idx.size, run.v.shape[1]
+    w = run.w
+    v_hat = (_torque(theta, run, w) @ kt_inv.T) / theta[nb : nb + n][None, :]
+    jw = whiten @ jacobian(theta, run, kt_inv, v_hat, w)
     return jw, np.asarray((run.v - v_hat) @ whiten.T)
 
 

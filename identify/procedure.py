@@ -330,7 +330,9 @@ def _run_procedure(problem: Problem, options: Options, step: Step) -> ProcedureR
             step("Case 2: IDIM-WLS with the identified gains")
             case2 = fit_case("case2", main, wtls.gains, names, factors, gain_cov=_gain_cov(wtls))
         final = case2 if case2 is not None else case1
-        validation, designs = _validation_fits(problem, form, main, case1, case2, wtls, step)
+        validation, designs = _validation_fits(
+            problem, form, main, factors[0], case1, case2, wtls, step
+        )
         step("Cross-validation")
         cv = cross_validate(main, final.gains, names, options.cv_fraction, train_factors)
     except BaseException:
@@ -395,13 +397,14 @@ def _validation_fits(
     problem: Problem,
     form: WristFriction,
     main: list[Design],
+    factors_a: np.ndarray,
     case1: CaseResult,
     case2: CaseResult | None,
     wtls: GainIdentification | None,
     step: Step,
 ) -> tuple[dict[str, CaseResult], dict[str, Design]]:
     """Table 5: the validation run's payload with the gains of each case; and the designs of
-    all runs by role."""
+    all runs by role. ``factors_a``: run a's R factors, already computed for the main fits."""
     bp = problem.bases[form]
     names = list(bp.names)
     a = main[0]
@@ -419,9 +422,10 @@ def _validation_fits(
                 key="payload",
             )
         designs["validation"] = c
-        validation[case1.name] = fit_case(case1.name, [a, c], case1.gains, names)
+        factors = [factors_a, c.factors()]  # one pass over each run for both cases
+        validation[case1.name] = fit_case(case1.name, [a, c], case1.gains, names, factors)
         if case2 is not None:
             validation["case2"] = fit_case(
-                "case2", [a, c], case2.gains, names, gain_cov=_gain_cov(wtls)
+                "case2", [a, c], case2.gains, names, factors, gain_cov=_gain_cov(wtls)
             )
     return validation, designs
