@@ -28,6 +28,7 @@ from drivegain.identify.hac import LongRunSum
 from drivegain.identify.ml import LinearStart, MLFit, least_squares
 from drivegain.identify.mlmodel import (
     RunArrays,
+    Whitening,
     chunks,
     ls_rows,
     run_arrays,
@@ -106,7 +107,7 @@ def eiv_test(
     if ls is None:
         ls = least_squares(runs, kt)
     theta_ml = np.concatenate([fit.chi, fit.gains, fit.payload_unknown])
-    whiten = np.linalg.inv(np.linalg.cholesky(fit.noise))
+    whiten = Whitening(fit.noise, fit.kappa)
     gains = slice(nb, nb + n)
     # Only the gains' rows of each sample's first-order influence H⁻¹ψ_k enter the test: the
     # per-sample influences are formed block by block, n columns each, never held whole.

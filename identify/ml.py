@@ -3,7 +3,7 @@
 The model of every sample k of every run, for the n drives at once (eq. 21 solved for the
 currents)::
 
-    v_k = diag(1/g) · K⁻¹ · (W_k χ + W_uL,k χ_uL + W_kL,k χ_kL) + e_k,     e_k ~ N(0, Σ)
+    v_k = diag(1/g) · K⁻¹ · (W_k χ + W_uL,k χ_uL + W_kL,k χ_kL) + e_k,    e_k ~ N(0, S_k Σ S_k)
 
 v are the logged currents (A), g the drive gains (N·m/A), K the coupling factor of the current
 matrix (:func:`~drivegain.identify.design.coupling_factor`), χ the base parameters, χ_uL the
@@ -11,6 +11,10 @@ unknown and χ_kL the known payload parameters (zero for the unloaded run). Σ (
 noise model: the covariance of what the model does not explain, in current units. It is
 estimated from the data together with the parameters (the profiled likelihood is
 ``log det Σ̂(θ)``, Σ̂(θ) the residuals' mean outer product), so no weight is chosen by hand.
+S_k is diagonal, √(1 + κ_i s_ki) for drive i, s_ki the share of the sample's filter window near
+a reversal of a Coulomb term of the drive (:mod:`.reversals`): a drive train that sticks at a
+reversal breaks the ``Fc · sign(v)`` model there with an error of the reversal's sign, and
+κ ≥ 0 (per drive, estimated from the residuals) says how much variance that adds.
 
 Why this form: current noise (measurement noise, or torque noise turned into a current by the
 controller) and model errors both add to the currents here, so neither biases the estimate;
@@ -20,9 +24,9 @@ choose (docs/model.md, "Estimators"), and a least squares with V as regressor (t
 payload on the right-hand side) is attenuated by current noise.
 
 The parameters are found by Gauss-Newton on the whitened residuals (normal matrix from R
-factors built in row blocks; the model's currents and Jacobian are in :mod:`.mlmodel`), Σ
-re-estimated at every step (a coordinate descent of the profiled likelihood, which converges to
-its stationary point), started from that linear least squares. The covariance is the HAC
+factors built in row blocks; the model's currents and Jacobian are in :mod:`.mlmodel`), Σ and
+κ re-estimated at every step (a coordinate descent of the profiled likelihood, which converges
+to its stationary point), started from that linear least squares. The covariance is the HAC
 sandwich of :mod:`drivegain.identify.hac` on the per-sample scores, with the lag chosen from the
 whitened residuals' autocorrelation.
 """
@@ -34,6 +38,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.linalg
+import scipy.optimize
 
 from drivegain.config.payload import PAYLOAD_PARAMS, Payload
 from drivegain.errors import IdentificationError
@@ -44,12 +49,14 @@ from drivegain.identify.hac import LongRunSum, bartlett_lag, lag1_autocorrelatio
 from drivegain.identify.hac import sandwich as hac_sandwich
 from drivegain.identify.mlmodel import (
     RunArrays,
+    Whitening,
     chunks,
     ls_rows,
     predict,
     run_arrays,
     scores,
     split_theta,
+    unscaled,
     whitened_block,
 )
 
@@ -58,6 +65,9 @@ from drivegain.identify.mlmodel import (
 DECREMENT_TOL = 1e-10
 #: ... and when no diagonal element of the noise covariance Σ changes by more than this.
 NOISE_TOL = 1e-8
+#: κ (variance near reversals) is estimated when the fit with κ = 0 moves by less than this
+#: (squared, in standard deviations) and Σ by less than this relative.
+KAPPA_STEP_TOL = 1e-4
 MAX_ITER = 50
 #: Gains further than this many decades from the least-squares start mean the scale is lost
 #: (least squares is attenuated by tens of percent, never by orders of magnitude).
@@ -80,6 +90,10 @@ class MLFit:
         HAC covariance of (χ, g, χ_uL) in that order.
     noise
         Σ̂, the residual covariance in current units, A², (n, n).
+    kappa
+        κ̂, ≥ 0, (n,): an entry of drive i with the share s of its filter window near a
+        reversal of the drive's Coulomb terms has (1 + κ_i s) times the variance of one away
+        from reversals (:class:`~drivegain.identify.mlmodel.Whitening`; 0 where none is).
     lag, rho
         Newey-West lag (samples) and the whitened residuals' lag-1 autocorrelation it came from.
     iterations, converged
@@ -99,6 +113,7 @@ class MLFit:
     payload_names: list[str]
     covariance: np.ndarray
     noise: np.ndarray
+    kappa: np.ndarray
     lag: int
     rho: float
     iterations: int
@@ -127,19 +142,76 @@ class MLFit:
         return np.sqrt(np.clip(np.diag(self.noise), 0.0, None))
 
 
+#: Largest κ searched (decades): an entry wholly near reversals then counts 1e-7 of an ordinary one.
+LOG_KAPPA_MAX = 7.0
 #: Residual variance taken as round-off, relative to each joint's mean square current: an error
 #: of 1e-8 of the signal is the arithmetic's (and a 1e-4 measurement's weight moves by 1e-8).
 ROUND_OFF_VARIANCE = 1e-16
 
 
-def _noise(resid: Sequence[np.ndarray], mean_square: np.ndarray) -> np.ndarray:
-    """Σ̂ of the residuals, its diagonal floored at the round-off of ``mean_square`` (each
-    joint's mean square current): with exact (noise-free) data Σ̂ stays invertible and stops
-    changing from one iteration to the next, and a real estimate is not changed."""
-    e = np.vstack(resid)
-    cov = e.T @ e / e.shape[0]
+def _kappa(
+    resid: Sequence[np.ndarray], runs: Sequence[RunArrays], i: int, var: float, floor: float
+) -> float:
+    """κ_i by maximum likelihood, drive i's variance away from reversals ``var`` held fixed.
+
+    The entries' variance is var·(1 + κ s), s their share of reversal; κ = 0 unless a positive
+    value has the larger likelihood. ``floor``: round-off variance (an exact fit gives κ = 0).
+    """
+    # Entries of share 0 (and runs without shares) do not depend on κ: left out of the sums.
+    pairs = [
+        (e[:, i], r.reversal[:, i])
+        for e, r in zip(resid, runs, strict=True)
+        if r.reversal is not None
+    ]
+    if not pairs:
+        return 0.0
+    share = np.concatenate([s for _, s in pairs])
+    r2 = np.concatenate([e**2 for e, _ in pairs])
+    r2 = np.maximum(r2, floor) / max(var, floor)
+    on = share > 0.0
+    if not on.any():
+        return 0.0
+    share, r2 = share[on], r2[on]
+
+    def nll(log_k: float) -> float:
+        f = 1.0 + 10.0**log_k * share
+        return float(np.sum(np.log(f) + r2 / f))
+
+    best = scipy.optimize.minimize_scalar(
+        nll, bounds=(-3.0, LOG_KAPPA_MAX), method="bounded", options={"xatol": 1e-10}
+    )
+    return 10.0 ** float(best.x) if nll(float(best.x)) < float(np.sum(r2)) else 0.0
+
+
+def _kappas(
+    resid: Sequence[np.ndarray],
+    runs: Sequence[RunArrays],
+    noise: np.ndarray,
+    mean_square: np.ndarray,
+) -> np.ndarray:
+    """κ̂ of every drive (:func:`_kappa`) with the variances of ``noise`` (Σ̂ with κ = 0)."""
     floor = np.maximum(ROUND_OFF_VARIANCE * mean_square, 1e-300)
-    return np.asarray(cov + np.diag(floor))
+    var = np.diag(noise)
+    return np.array([_kappa(resid, runs, i, var[i], floor[i]) for i in range(var.size)])
+
+
+def _noise(
+    resid: Sequence[np.ndarray],
+    mean_square: np.ndarray,
+    runs: Sequence[RunArrays],
+    kappa: np.ndarray,
+) -> Whitening:
+    """Σ̂ of the residuals with κ = ``kappa`` (:class:`~.mlmodel.Whitening`).
+
+    Σ̂ is the mean outer product of the residuals scaled back by 1/√(1 + κ s). Its diagonal is
+    floored at the round-off of ``mean_square`` (each joint's mean square current): with exact
+    (noise-free) data Σ̂ stays invertible and stops changing from one round to the next, and a
+    real estimate is not changed.
+    """
+    floor = np.maximum(ROUND_OFF_VARIANCE * mean_square, 1e-300)
+    e = np.vstack([unscaled(e, r.reversal, kappa) for e, r in zip(resid, runs, strict=True)])
+    cov = e.T @ e / e.shape[0]
+    return Whitening(np.asarray(cov + np.diag(floor)), kappa)
 
 
 @dataclass(frozen=True)
@@ -270,20 +342,24 @@ def ml_fit(
     def residuals(th: np.ndarray) -> list[np.ndarray]:
         return [r.v - predict(th, r, kt_inv)[0] for r in runs]
 
-    def whitened_sq(resid: list[np.ndarray], whiten: np.ndarray) -> float:
-        return float(sum(np.sum((e @ whiten.T) ** 2) for e in resid))
+    def whitened_sq(resid: list[np.ndarray], whiten: Whitening) -> float:
+        pairs = zip(resid, runs, strict=True)
+        return float(sum(np.sum(whiten.apply(e, r.reversal) ** 2) for e, r in pairs))
 
     converged = False
     rounds = 0
     mean_square = np.mean(np.vstack([r.v for r in runs]) ** 2, axis=0)
     resid = residuals(theta)
-    noise = _noise(resid, mean_square)
+    whiten = _noise(resid, mean_square, runs, np.zeros(n))
+    # κ is estimated once, from the residuals of the fit with κ = 0 once it has (nearly)
+    # settled, and then held: re-estimated with θ, it would feed on itself (entries that count
+    # less are fitted less, their residuals grow, κ grows) and drift towards dropping them.
+    kappa_due = any(r.reversal is not None for r in runs)
     while rounds < MAX_ITER:
         rounds += 1
         # Coordinate descent of the profiled likelihood: one Gauss-Newton step of θ with Σ
         # fixed (step halving until the whitened residuals shrink), then Σ from the new
         # residuals. Each half lowers the likelihood's negative.
-        whiten = np.linalg.inv(np.linalg.cholesky(noise))
         r_aug = _augmented_factor(theta, runs, kt_inv, whiten, parallel)
         if rounds == 1:
             # The whitened Jacobian has the rank of the Jacobian (the whitening is invertible).
@@ -303,10 +379,16 @@ def ml_fit(
                     break
             lam *= 0.5
         # else: no decrease along the step (round-off at the optimum): θ stays
-        new_noise = _noise(resid, mean_square)
-        change = float(np.max(np.abs(np.diag(new_noise) / np.diag(noise) - 1.0)))
-        noise = new_noise
-        if (step_sq < DECREMENT_TOL or lam <= 1e-6) and change < NOISE_TOL:
+        new = _noise(resid, mean_square, runs, whiten.kappa)
+        change = float(np.max(np.abs(np.diag(new.noise) / np.diag(whiten.noise) - 1.0)))
+        whiten = new
+        still = step_sq < DECREMENT_TOL or lam <= 1e-6
+        if kappa_due and step_sq < KAPPA_STEP_TOL and change < KAPPA_STEP_TOL:
+            kappa = _kappas(resid, runs, whiten.noise, mean_square)
+            whiten = _noise(resid, mean_square, runs, kappa)
+            kappa_due = False
+            continue
+        if still and change < NOISE_TOL and not kappa_due:
             converged = True
             break
     if np.any(theta[nb : nb + n] == 0.0) or not np.all(np.isfinite(theta)):
@@ -322,8 +404,7 @@ def ml_fit(
         )
     if step is not None:
         step("maximum likelihood: HAC covariance")
-    # ``noise`` is already Σ̂ of the final θ (the loop's last update).
-    whiten = np.linalg.inv(np.linalg.cholesky(noise))
+    # ``whiten`` already holds Σ̂ and κ̂ of the final θ (the loop's last update).
     white = [_whitened_residuals(theta, r, kt_inv, whiten) for r in runs]  # predict chunks
     lag = bartlett_lag(white)
     rho = lag1_autocorrelation(white)
@@ -346,7 +427,8 @@ def ml_fit(
         payload_unknown=chi_u.copy(),
         payload_names=names,
         covariance=cov,
-        noise=noise,
+        noise=whiten.noise,
+        kappa=whiten.kappa,
         lag=lag,
         rho=rho,
         iterations=rounds,
@@ -361,7 +443,7 @@ def _augmented_factor(
     theta: np.ndarray,
     runs: Sequence[RunArrays],
     kt_inv: np.ndarray,
-    whiten: np.ndarray,
+    whiten: Whitening,
     parallel: bool = False,
 ) -> np.ndarray:
     """R factor of ``[J̃ | ẽ]`` (whitened Jacobian of v̂ and residuals), built in row blocks.
@@ -385,7 +467,7 @@ def _augmented_factor(
 
 
 def _run_factor(
-    theta: np.ndarray, run: RunArrays, kt_inv: np.ndarray, whiten: np.ndarray
+    theta: np.ndarray, run: RunArrays, kt_inv: np.ndarray, whiten: Whitening
 ) -> np.ndarray:
     """R factor of one run's ``[J̃ | ẽ]`` (:func:`_augmented_factor`), (P + 1, P + 1)."""
     p = theta.size
@@ -398,10 +480,10 @@ def _run_factor(
 
 
 def _whitened_residuals(
-    theta: np.ndarray, run: RunArrays, kt_inv: np.ndarray, whiten: np.ndarray
+    theta: np.ndarray, run: RunArrays, kt_inv: np.ndarray, whiten: Whitening
 ) -> np.ndarray:
-    """ẽ_k = L⁻¹ (v_k − v̂_k), (N, n), with ``whiten`` = L⁻¹ (Σ = L Lᵀ)."""
-    return np.asarray((run.v - predict(theta, run, kt_inv)[0]) @ whiten.T)
+    """ẽ_k = L⁻¹ (v_k − v̂_k), (N, n) (Σ = L Lᵀ; entries left out are zero)."""
+    return whiten.apply(run.v - predict(theta, run, kt_inv)[0], run.reversal)
 
 
 def _check_rank(jac: np.ndarray, names: Sequence[str], nb: int, n: int) -> None:

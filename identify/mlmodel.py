@@ -11,6 +11,7 @@ the gathered regressor columns and the Jacobian exist for one block at a time.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -45,6 +46,10 @@ class RunArrays:
         Its columns of the known payload parameters and their values (None when unloaded).
     nu
         Number of unknown payload parameters.
+    reversal
+        (N, n): each entry's share of reversal, the share of its filter window near a reversal
+        of a Coulomb term of its drive (:mod:`.reversals`), 0-1; its variance grows with it
+        (:class:`Whitening`). None when no entry has any.
     """
 
     v: np.ndarray
@@ -54,6 +59,7 @@ class RunArrays:
     known_idx: np.ndarray | None
     known_values: np.ndarray
     nu: int
+    reversal: np.ndarray | None = None
 
     @property
     def samples(self) -> int:
@@ -80,10 +86,11 @@ class RunArrays:
 
     def rows(self, sl: slice) -> RunArrays:
         """The samples ``sl`` (views, no copy)."""
-        return replace(self, v=self.v[sl], regressor=self.regressor.rows(sl))
+        rev = None if self.reversal is None else self.reversal[sl]
+        return replace(self, v=self.v[sl], regressor=self.regressor.rows(sl), reversal=rev)
 
 
-def run_arrays(d: Design, payload: Payload) -> RunArrays:
+def run_arrays(d: Design, payload: Payload, reversals: bool = True) -> RunArrays:
     """The ML model's view of a design (:class:`RunArrays`).
 
     Parameters
@@ -93,7 +100,15 @@ def run_arrays(d: Design, payload: Payload) -> RunArrays:
     payload
         The payload of the loaded run, whose ``known`` parameters fix the scale; an unloaded
         design gets zero payload columns of the same shape.
+    reversals
+        Give the entries their share of reversal (:attr:`RunArrays.reversal`) when the run
+        has it (False: every entry the same variance, as the fit was first built).
     """
+    rev = None
+    if reversals and d.run.reversal_share is not None:
+        rev = np.clip(np.abs(d.run.reversal_share), 0.0, 1.0)
+        if not rev.any():
+            rev = None
     mask = payload.known_mask()
     unknown = np.flatnonzero(~mask)
     unknown_idx = known_idx = None
@@ -108,7 +123,51 @@ def run_arrays(d: Design, payload: Payload) -> RunArrays:
         known_idx=known_idx,
         known_values=np.asarray(payload.values[mask], float),
         nu=int(unknown.size),
+        reversal=rev,
     )
+
+
+@dataclass(frozen=True)
+class Whitening:
+    """The noise model as the fit applies it: e_k ↦ L⁻¹ S_k⁻¹ e_k.
+
+    Σ = L Lᵀ (A², (n, n)) is the covariance of the current errors of an entry away from
+    reversals. S_k is diagonal, √(1 + κ_i s_ki) for drive i, s_ki the entry's share of reversal
+    (:attr:`RunArrays.reversal`): the entries near reversals of a drive's Coulomb terms have
+    (1 + κ_i s) times the variance (:mod:`.reversals`).
+
+    Attributes
+    ----------
+    noise
+        Σ, A², (n, n).
+    kappa
+        κ, ≥ 0, (n,): the variance added per unit share of reversal, relative to Σ_ii.
+    """
+
+    noise: np.ndarray
+    kappa: np.ndarray
+
+    @functools.cached_property
+    def matrix(self) -> np.ndarray:
+        """L⁻¹, (n, n)."""
+        return np.asarray(np.linalg.inv(np.linalg.cholesky(self.noise)))
+
+    def apply(self, x: np.ndarray, reversal: np.ndarray | None) -> np.ndarray:
+        """Whitened ``x``, (N, n) or (N, n, P), of entries with the shares of reversal
+        ``reversal`` ((N, n), or None for none)."""
+        x = unscaled(x, reversal, self.kappa)
+        if x.ndim == 2:
+            return np.asarray(x @ self.matrix.T)
+        return np.asarray(self.matrix @ x)
+
+
+def unscaled(x: np.ndarray, reversal: np.ndarray | None, kappa: np.ndarray) -> np.ndarray:
+    """S_k⁻¹ x_k (:class:`Whitening`) of (N, n) or (N, n, P) ``x``: each entry divided by
+    √(1 + κ_i s); ``x`` itself when no entry is scaled."""
+    if reversal is None or not np.any(kappa != 0.0):
+        return x
+    s = 1.0 / np.sqrt(1.0 + kappa[None, :] * reversal)
+    return x * (s if x.ndim == 2 else s[:, :, None])
 
 
 def split_theta(theta: np.ndarray, nb: int, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -182,7 +241,7 @@ def chunks(samples: int) -> list[slice]:
 
 
 def whitened_block(
-    theta: np.ndarray, run: RunArrays, kt_inv: np.ndarray, whiten: np.ndarray
+    theta: np.ndarray, run: RunArrays, kt_inv: np.ndarray, whiten: Whitening
 ) -> tuple[np.ndarray, np.ndarray]:
     """Whitened Jacobian J̃_k = L⁻¹ ∂v̂_k/∂θ, (N, n, P), and residuals ẽ_k, (N, n), of ``run``.
 
@@ -192,8 +251,8 @@ def whitened_block(
     nb, n = run.base_idx.size, run.v.shape[1]
     w = run.w
     v_hat = (_torque(theta, run, w) @ kt_inv.T) / theta[nb : nb + n][None, :]
-    jw = whiten @ jacobian(theta, run, kt_inv, v_hat, w)
-    return jw, np.asarray((run.v - v_hat) @ whiten.T)
+    jw = whiten.apply(jacobian(theta, run, kt_inv, v_hat, w), run.reversal)
+    return jw, whiten.apply(run.v - v_hat, run.reversal)
 
 
 def scores(jw: np.ndarray, ew: np.ndarray) -> np.ndarray:

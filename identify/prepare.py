@@ -31,6 +31,7 @@ from drivegain.dynamics.regressor import stack_joint_major, standard_regressor
 from drivegain.errors import DataError
 from drivegain.formats.trajectory import attached_fourier
 from drivegain.identify.compact import CompactRegressor
+from drivegain.identify.reversals import reversal_zones
 from drivegain.identify.signal import FilterSettings, derivatives, parallel_decimate
 
 #: Full-rate samples per regressor evaluation and least decimation chunk: the (chunk, n, 86)
@@ -223,6 +224,10 @@ class PreparedRun:
     rest_samples
         Samples of the recording where the robot was at rest (:func:`at_rest`); decimated
         samples near them are not kept, so ``t`` may have gaps.
+    reversal_share
+        Per kept sample and drive, the share of the decimation filter's window near a reversal
+        of a Coulomb velocity of that drive (:mod:`~drivegain.identify.reversals`), (N, n);
+        None when not computed (exact derivatives).
     """
 
     label: str
@@ -237,6 +242,7 @@ class PreparedRun:
     raw_samples: int
     period_s: float | None = None
     rest_samples: int = 0
+    reversal_share: np.ndarray | None = None
 
     @property
     def samples(self) -> int:
@@ -262,6 +268,7 @@ class PreparedRun:
             raw_samples=self.raw_samples,
             period_s=self.period_s,
             rest_samples=self.rest_samples,
+            reversal_share=None if self.reversal_share is None else self.reversal_share[sl],
         )
 
 
@@ -500,8 +507,11 @@ def prepare_recording(
     for s in range(0, n_samples, CHUNK):
         qd[s : s + CHUNK] = five_point(qf, rate_hz, s, s + CHUNK)[0]
     rest = at_rest(qd)
+    zones = reversal_zones(qd, model.robot)
     del qd
-    (c_all, rest_d) = parallel_decimate([current, rest.astype(float)], f, 0, source=src)
+    (c_all, rest_d, zones_d) = parallel_decimate(
+        [current, rest.astype(float), zones], f, 0, source=src
+    )
     nd = c_all.shape[0]
     w_all = np.zeros((nd, rows.size))  # only the series that are not zero everywhere
     carry: np.ndarray | None = None  # regressor series of the previous window's tail
@@ -555,6 +565,7 @@ def prepare_recording(
         raw_samples=n_samples,
         period_s=period_s,
         rest_samples=int(rest.sum()),
+        reversal_share=zones_d[keep],
     )
 
 

@@ -29,6 +29,10 @@ def ml_json(w: GainIdentification, robot: Robot) -> dict[str, Any]:
             for name, s in zip(robot.joint_names, ml.noise_std, strict=True)
         ],
         "noise_covariance": [[_num(v) for v in row] for row in ml.noise],
+        "reversal_variance": [
+            {"drive": name, "kappa": _num(k)}
+            for name, k in zip(robot.joint_names, ml.kappa, strict=True)
+        ],
         "rounds": ml.iterations,
         "converged": ml.converged,
         "start_gains": [_num(g) for g in ml.start_gains],
@@ -72,6 +76,10 @@ def ml_lines(w: GainIdentification, robot: Robot) -> list[str]:
         "- Noise model (1σ of what the model leaves in each drive's current, A): "
         + ", ".join(f"{nm} {_g(float(s), 3)}" for nm, s in zip(names, ml.noise_std, strict=True))
         + ".",
+        "- Entries near reversals of Coulomb friction: variance × (1 + κ·s), s the share of "
+        "the filter window near a reversal of one of the drive's Coulomb terms; κ "
+        + ", ".join(f"{nm} {_g(float(k), 3)}" for nm, k in zip(names, ml.kappa, strict=True))
+        + ' (docs/model.md, "Reversals").',
         f"- Standard deviations: HAC sandwich (Newey-West, lag {ml.lag} decimated samples, from "
         f"the residuals' lag-1 autocorrelation {_g(ml.rho, 2)}); {ml.iterations} rounds"
         + ("" if ml.converged else " (**did not settle**)")

@@ -236,9 +236,10 @@ def _setup_section(data: dict[str, Any], world: World) -> str:
             f"{RANDOM_PERIODS / RANDOM_BASE_HZ:g} s, not optimised; the same series for runs a, "
             "b and c of the seed (one excitation per user), drawn from its own stream."
         )
-    if any(sc.plant is Plant.CLOSED_LOOP for sc in scen):
+    closed = [f"`{sc.key}`" for sc in scen if sc.plant is Plant.CLOSED_LOOP]
+    if closed:
         add(
-            "- Closed loop (scenario `closed-loop`): the simulated cell's drives "
+            f"- Closed loop (scenarios {', '.join(closed)}): the simulated cell's drives "
             "(`drivegain.drivers.physics`, no CAN stack) track the trajectory's setpoints (CSP, "
             "linear interpolation and velocity feed-forward over each 4 ms period, P position "
             f"and PI velocity loops at {LOOP_BANDWIDTH_HZ:g} Hz on the motor encoders' counts, "

@@ -105,6 +105,13 @@ def _global_ls(a: Design, b: Design, w: World) -> GainEstimate:
     return global_ls_gains(a, b, w.payload)
 
 
+def _ours_plain(a: Design, b: Design, w: World) -> GainEstimate:
+    def plain(d: Design) -> Design:
+        return replace(d, run=replace(d.run, reversal_share=None))
+
+    return ours_gains(plain(a), plain(b), w.payload, w.robot.apriori_gains)
+
+
 def _ours_cad(a: Design, b: Design, w: World) -> GainEstimate:
     return ours_gains(a, b, replace(w.payload, known=PAYLOAD_PARAMS), w.robot.apriori_gains)
 
@@ -179,6 +186,16 @@ METHODS: tuple[Method, ...] = (
         _ours_cad,
         "ablation: our estimator with all 10 payload parameters known, the information the "
         "per-joint LS uses",
+    ),
+    Method(
+        "ours_plain",
+        "ours, no reversal variance",
+        True,
+        True,
+        True,
+        _ours_plain,
+        "ablation: our estimator with one variance for every entry, none apart near reversals "
+        'of Coulomb friction (docs/model.md, "Reversals")',
     ),
 )
 

@@ -110,6 +110,16 @@ SCENARIOS = (
         loop_noise_nm=LOOP_NOISE_NM,
         max_seeds=EXTENDED_SEEDS,
     ),
+    Scenario(
+        "random-closed-loop",
+        f"random excitation, closed-loop drives, current-loop error {LOOP_NOISE_NM:g} N·m",
+        0.0,
+        0.0,
+        Excitation.RANDOM,
+        Plant.CLOSED_LOOP,
+        loop_noise_nm=LOOP_NOISE_NM,
+        max_seeds=EXTENDED_SEEDS,
+    ),
 )
 #: Root of every random stream of the study (seed s of noise level k uses (ROOT_SEED, k, s)).
 ROOT_SEED = 20120701

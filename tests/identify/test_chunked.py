@@ -19,7 +19,7 @@ from drivegain.identify.design import ls_transform, make_design
 from drivegain.identify.eiv import eiv_test
 from drivegain.identify.hac import LongRunSum, bartlett_lag, long_run_covariance, sandwich
 from drivegain.identify.ml import least_squares, ml_fit
-from drivegain.identify.mlmodel import ls_rows, run_arrays, whitened_block
+from drivegain.identify.mlmodel import Whitening, ls_rows, run_arrays, whitened_block
 from drivegain.identify.prepare import _compact
 from drivegain.identify.weighting import joint_sigma
 
@@ -158,7 +158,7 @@ def test_eiv_test_equals_its_whole_matrix_form(world, pair) -> None:
         for m, r in zip(mats, runs, strict=True)
     ]
     theta = np.concatenate([fit.chi, fit.gains, fit.payload_unknown])
-    whiten = np.linalg.inv(np.linalg.cholesky(fit.noise))
+    whiten = Whitening(fit.noise, fit.kappa)
     blocks = [whitened_block(theta, r, np.linalg.inv(kt), whiten) for r in runs]
     bread = sum(jw.reshape(-1, theta.size).T @ jw.reshape(-1, theta.size) for jw, _ in blocks)
     h_ml = np.linalg.pinv(bread, hermitian=True)
