@@ -24,9 +24,10 @@ choose (docs/model.md, "Estimators"), and a least squares with V as regressor (t
 payload on the right-hand side) is attenuated by current noise.
 
 The parameters are found by Gauss-Newton on the whitened residuals (normal matrix from R
-factors built in row blocks; the model's currents and Jacobian are in :mod:`.mlmodel`), Σ and
-κ re-estimated at every step (a coordinate descent of the profiled likelihood, which converges
-to its stationary point), started from that linear least squares. The covariance is the HAC
+factors built in row blocks; the model's currents and Jacobian are in :mod:`.mlmodel`), Σ
+re-estimated at every step (a coordinate descent of the profiled likelihood, which converges to
+its stationary point), started from that linear least squares; κ is estimated once, when the
+fit with κ = 0 has nearly settled, and held from there. The covariance is the HAC
 sandwich of :mod:`drivegain.identify.hac` on the per-sample scores, with the lag chosen from the
 whitened residuals' autocorrelation.
 """
@@ -184,31 +185,28 @@ def _kappa(
 
 
 def _kappas(
-    resid: Sequence[np.ndarray],
-    runs: Sequence[RunArrays],
-    noise: np.ndarray,
-    mean_square: np.ndarray,
+    resid: Sequence[np.ndarray], runs: Sequence[RunArrays], noise: np.ndarray, floor: np.ndarray
 ) -> np.ndarray:
-    """κ̂ of every drive (:func:`_kappa`) with the variances of ``noise`` (Σ̂ with κ = 0)."""
-    floor = np.maximum(ROUND_OFF_VARIANCE * mean_square, 1e-300)
+    """κ̂ of every drive (:func:`_kappa`) with the variances of ``noise`` (Σ̂ with κ = 0);
+    ``floor``: each drive's round-off variance (:func:`_round_off`)."""
     var = np.diag(noise)
     return np.array([_kappa(resid, runs, i, var[i], floor[i]) for i in range(var.size)])
 
 
+def _round_off(mean_square: np.ndarray) -> np.ndarray:
+    """Each drive's round-off variance, A², from its mean square current ``mean_square``."""
+    return np.maximum(ROUND_OFF_VARIANCE * mean_square, 1e-300)
+
+
 def _noise(
-    resid: Sequence[np.ndarray],
-    mean_square: np.ndarray,
-    runs: Sequence[RunArrays],
-    kappa: np.ndarray,
+    resid: Sequence[np.ndarray], floor: np.ndarray, runs: Sequence[RunArrays], kappa: np.ndarray
 ) -> Whitening:
     """Σ̂ of the residuals with κ = ``kappa`` (:class:`~.mlmodel.Whitening`).
 
     Σ̂ is the mean outer product of the residuals scaled back by 1/√(1 + κ s). Its diagonal is
-    floored at the round-off of ``mean_square`` (each joint's mean square current): with exact
-    (noise-free) data Σ̂ stays invertible and stops changing from one round to the next, and a
-    real estimate is not changed.
+    floored at ``floor`` (:func:`_round_off`): with exact (noise-free) data Σ̂ stays invertible
+    and stops changing from one round to the next, and a real estimate is not changed.
     """
-    floor = np.maximum(ROUND_OFF_VARIANCE * mean_square, 1e-300)
     e = np.vstack([unscaled(e, r.reversal, kappa) for e, r in zip(resid, runs, strict=True)])
     cov = e.T @ e / e.shape[0]
     return Whitening(np.asarray(cov + np.diag(floor)), kappa)
@@ -348,9 +346,9 @@ def ml_fit(
 
     converged = False
     rounds = 0
-    mean_square = np.mean(np.vstack([r.v for r in runs]) ** 2, axis=0)
+    floor = _round_off(np.mean(np.vstack([r.v for r in runs]) ** 2, axis=0))
     resid = residuals(theta)
-    whiten = _noise(resid, mean_square, runs, np.zeros(n))
+    whiten = _noise(resid, floor, runs, np.zeros(n))
     # κ is estimated once, from the residuals of the fit with κ = 0 once it has (nearly)
     # settled, and then held: re-estimated with θ, it would feed on itself (entries that count
     # less are fitted less, their residuals grow, κ grows) and drift towards dropping them.
@@ -379,13 +377,13 @@ def ml_fit(
                     break
             lam *= 0.5
         # else: no decrease along the step (round-off at the optimum): θ stays
-        new = _noise(resid, mean_square, runs, whiten.kappa)
+        new = _noise(resid, floor, runs, whiten.kappa)
         change = float(np.max(np.abs(np.diag(new.noise) / np.diag(whiten.noise) - 1.0)))
         whiten = new
         still = step_sq < DECREMENT_TOL or lam <= 1e-6
         if kappa_due and step_sq < KAPPA_STEP_TOL and change < KAPPA_STEP_TOL:
-            kappa = _kappas(resid, runs, whiten.noise, mean_square)
-            whiten = _noise(resid, mean_square, runs, kappa)
+            kappa = _kappas(resid, runs, whiten.noise, floor)
+            whiten = _noise(resid, floor, runs, kappa)
             kappa_due = False
             continue
         if still and change < NOISE_TOL and not kappa_due:
@@ -482,7 +480,7 @@ def _run_factor(
 def _whitened_residuals(
     theta: np.ndarray, run: RunArrays, kt_inv: np.ndarray, whiten: Whitening
 ) -> np.ndarray:
-    """ẽ_k = L⁻¹ (v_k − v̂_k), (N, n) (Σ = L Lᵀ; entries left out are zero)."""
+    """ẽ_k = L⁻¹ S_k⁻¹ (v_k − v̂_k), (N, n) (:class:`~.mlmodel.Whitening`)."""
     return whiten.apply(run.v - predict(theta, run, kt_inv)[0], run.reversal)
 
 

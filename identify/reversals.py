@@ -48,19 +48,17 @@ def coulomb_sources(robot: Robot) -> tuple[np.ndarray, np.ndarray]:
         couples) only that motor's own current.
     """
     k = robot.transmission()
-    n = robot.n
     scale = np.diag(k)
-    kt = k.T / scale[None, :]
-    to_current = np.linalg.inv(kt)  # torques -> drive currents, up to the gains
-    velocity = [np.eye(n)[j] for j in range(n)]
-    torque = [np.eye(n)[j] for j in range(n)]
-    for m in range(n):
-        if np.count_nonzero(k[m]) > 1:  # a coupled motor: its own velocity, its own friction
-            velocity.append(k[m] / scale[m])
-            torque.append(k[m] / scale[m])
-    v = np.array(velocity)
-    reach = np.abs(np.array(torque) @ to_current.T) > 1e-9 * np.abs(to_current).max()
-    return v, reach
+    # eq. (21)'s coupling factor, as design.coupling_factor (which imports this module's
+    # importer, prepare): torques -> drive currents, up to the gains.
+    to_current = np.linalg.inv(k.T / scale[None, :])
+    coupled = [k[m] / scale[m] for m in range(robot.n) if np.count_nonzero(k[m]) > 1]
+    # A joint's friction is a torque on its own joint along its own velocity; a coupled motor's
+    # acts on the joints it couples in the proportions of its velocity (virtual work): the same
+    # row serves as the velocity and as the friction's joint torques.
+    velocity = np.vstack([np.eye(robot.n), *coupled])
+    reach = np.abs(velocity @ to_current.T) > 1e-9 * np.abs(to_current).max()
+    return velocity, reach
 
 
 def reversal_zones(qd: np.ndarray, robot: Robot, fraction: float = REVERSAL_FRACTION) -> np.ndarray:
