@@ -27,9 +27,10 @@ The parameters are found by Gauss-Newton on the whitened residuals (normal matri
 factors built in row blocks; the model's currents and Jacobian are in :mod:`.mlmodel`), Σ
 re-estimated at every step (a coordinate descent of the profiled likelihood, which converges to
 its stationary point), started from that linear least squares; κ is estimated once, when the
-fit with κ = 0 has nearly settled, and held from there. The covariance is the HAC
-sandwich of :mod:`drivegain.identify.hac` on the per-sample scores, with the lag chosen from the
-whitened residuals' autocorrelation.
+fit with κ = 0 has nearly settled, and held from there. The covariance is ``H⁻¹ Jᵀ Ω̂ J H⁻¹``
+with Ω̂ the whitened errors' autocovariance over a few lags, corrected for what the fit takes
+out of the residuals (:mod:`drivegain.identify.autocov`; the Newey-West estimate on the
+per-sample scores it replaced was 10-20 % too small).
 """
 
 from __future__ import annotations
@@ -44,10 +45,10 @@ import scipy.optimize
 from drivegain.config.payload import PAYLOAD_PARAMS, Payload
 from drivegain.errors import IdentificationError
 from drivegain.identify import forked
+from drivegain.identify.autocov import ErrorAutocovariance, LaggedSums
 from drivegain.identify.design import Design
 from drivegain.identify.estimate import r_factor
-from drivegain.identify.hac import LongRunSum, bartlett_lag, lag1_autocorrelation
-from drivegain.identify.hac import sandwich as hac_sandwich
+from drivegain.identify.hac import bartlett_lag, lag1_autocorrelation
 from drivegain.identify.mlmodel import (
     RunArrays,
     Whitening,
@@ -55,7 +56,6 @@ from drivegain.identify.mlmodel import (
     ls_rows,
     predict,
     run_arrays,
-    scores,
     split_theta,
     unscaled,
     whitened_block,
@@ -70,6 +70,8 @@ NOISE_TOL = 1e-8
 #: (squared, in standard deviations) and Σ by less than this relative.
 KAPPA_STEP_TOL = 1e-4
 MAX_ITER = 50
+#: Fewest lags of the errors' autocovariance the covariance uses, decimated samples.
+MIN_LAG = 6
 #: Gains further than this many decades from the least-squares start mean the scale is lost
 #: (least squares is attenuated by tens of percent, never by orders of magnitude).
 RUNAWAY_DECADES = 4.0
@@ -79,7 +81,7 @@ RANK_TOL = 1e-10
 
 @dataclass(frozen=True)
 class MLFit:
-    """Maximum-likelihood estimate of (χ, g, χ_uL) with its HAC covariance.
+    """Maximum-likelihood estimate of (χ, g, χ_uL) with its covariance.
 
     Attributes
     ----------
@@ -88,7 +90,8 @@ class MLFit:
     payload_names
         Names of ``payload_unknown`` (:data:`~drivegain.config.payload.PAYLOAD_PARAMS` order).
     covariance
-        HAC covariance of (χ, g, χ_uL) in that order.
+        Covariance of (χ, g, χ_uL) in that order, from the errors' autocovariance corrected
+        for the fit (:mod:`~drivegain.identify.autocov`).
     noise
         Σ̂, the residual covariance in current units, A², (n, n).
     kappa
@@ -96,7 +99,11 @@ class MLFit:
         reversal of the drive's Coulomb terms has (1 + κ_i s) times the variance of one away
         from reversals (:class:`~drivegain.identify.mlmodel.Whitening`; 0 where none is).
     lag, rho
-        Newey-West lag (samples) and the whitened residuals' lag-1 autocorrelation it came from.
+        Longest lag of the errors' autocovariance, decimated samples: :data:`MIN_LAG`, or more
+        when the Newey-West rule asks for it from ``rho``, the whitened residuals' lag-1
+        autocorrelation.
+    autocov
+        The whitened errors' autocovariance the covariance used.
     iterations, converged
         Gauss-Newton steps taken and whether the step criterion was met.
     start_gains
@@ -117,6 +124,7 @@ class MLFit:
     kappa: np.ndarray
     lag: int
     rho: float
+    autocov: ErrorAutocovariance
     iterations: int
     converged: bool
     start_gains: np.ndarray
@@ -305,7 +313,7 @@ def ml_fit(
     Returns
     -------
     MLFit
-        The estimate, its HAC covariance and the noise model.
+        The estimate, its covariance and the noise model.
 
     Raises
     ------
@@ -401,23 +409,25 @@ def ml_fit(
             "do not carry the known payload's effect, so the data do not fix the gains' scale"
         )
     if step is not None:
-        step("maximum likelihood: HAC covariance")
+        step("maximum likelihood: covariance")
     # ``whiten`` already holds Σ̂ and κ̂ of the final θ (the loop's last update).
     white = [_whitened_residuals(theta, r, kt_inv, whiten) for r in runs]  # predict chunks
     lag = bartlett_lag(white)
     rho = lag1_autocorrelation(white)
     del white
     bread = np.zeros((theta.size, theta.size))
-    meat = LongRunSum(theta.size, lag)
     for r in runs:
         for sl in chunks(r.samples):
-            jw, ew = whitened_block(theta, r.rows(sl), kt_inv, whiten)
-            meat.add(scores(jw, ew))
-            flat = jw.reshape(-1, theta.size)
+            flat = whitened_block(theta, r.rows(sl), kt_inv, whiten)[0].reshape(-1, theta.size)
             bread += flat.T @ flat
-        meat.end_run()
+    lag = max(lag, MIN_LAG)
+    sums = LaggedSums(np.linalg.pinv(bread, hermitian=True), lag)
+    for r in runs:
+        for sl in chunks(r.samples):
+            sums.add(*whitened_block(theta, r.rows(sl), kt_inv, whiten))
+        sums.end_run()
+    cov, autocov = sums.covariance()
     rows = sum(r.samples for r in runs) * n
-    cov = hac_sandwich(bread, meat.meat(), rows, theta.size)
     chi, g, chi_u = split_theta(theta, nb, n)
     return MLFit(
         chi=chi.copy(),
@@ -429,6 +439,7 @@ def ml_fit(
         kappa=whiten.kappa,
         lag=lag,
         rho=rho,
+        autocov=autocov,
         iterations=rounds,
         converged=converged,
         start_gains=start_gains,

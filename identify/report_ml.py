@@ -36,9 +36,10 @@ def ml_json(w: GainIdentification, robot: Robot) -> dict[str, Any]:
         "rounds": ml.iterations,
         "converged": ml.converged,
         "start_gains": [_num(g) for g in ml.start_gains],
-        "covariance": "HAC (Newey-West, Bartlett kernel)",
+        "covariance": "error autocovariance, corrected for the fit",
         "covariance_lag_samples": ml.lag,
         "residual_lag1_autocorrelation": _num(ml.rho),
+        "error_autocovariance": [_num(v) for v in ml.autocov.gamma],
         "payload_unknown": {
             PAYLOAD_KEYS[PAYLOAD_PARAMS.index(p)]: {"value": _num(v), "std": _num(s)}
             for p, v, s in zip(w.payload_names, w.payload_unknown, w.payload_std, strict=True)
@@ -80,8 +81,11 @@ def ml_lines(w: GainIdentification, robot: Robot) -> list[str]:
         "the filter window near a reversal of one of the drive's Coulomb terms; κ "
         + ", ".join(f"{nm} {_g(float(k), 3)}" for nm, k in zip(names, ml.kappa, strict=True))
         + ' (docs/model.md, "Reversals").',
-        f"- Standard deviations: HAC sandwich (Newey-West, lag {ml.lag} decimated samples, from "
-        f"the residuals' lag-1 autocorrelation {_g(ml.rho, 2)}); {ml.iterations} rounds"
+        "- Standard deviations: from the whitened errors' autocovariance over "
+        f"{ml.lag} decimated samples, corrected for the fit (long-run variance "
+        f"{_g(ml.autocov.long_run, 3)} × that of white errors"
+        + (", tapered to stay positive" if ml.autocov.tapered else "")
+        + f"); {ml.iterations} rounds"
         + ("" if ml.converged else " (**did not settle**)")
         + ".",
         f"- Errors-in-variables test (Durbin-Wu-Hausman, LS against ML): statistic "

@@ -30,7 +30,9 @@ from drivegain.identify.compare import (
     wtls_gains,
 )
 from drivegain.identify.design import Design, make_design
-from drivegain.identify.gains import DEFAULT_ALPHA_GRID
+from drivegain.identify.gains import DEFAULT_ALPHA_GRID, Estimator, estimate_gains
+from drivegain.identify.hac import LongRunSum, bartlett_lag, sandwich
+from drivegain.identify.mlmodel import Whitening, run_arrays, scores, whitened_block
 from drivegain.validation.cell import closed_loop_three
 from drivegain.validation.scenarios import (
     SCENARIOS,
@@ -112,6 +114,35 @@ def _ours_plain(a: Design, b: Design, w: World) -> GainEstimate:
     return ours_gains(plain(a), plain(b), w.payload, w.robot.apriori_gains)
 
 
+def _ours_newey_west(a: Design, b: Design, w: World) -> GainEstimate:
+    """Our estimate with the Newey-West σ it reported before :mod:`~drivegain.identify.autocov`.
+
+    The same fit; the covariance is the Bartlett-kernel sandwich of the per-sample scores with
+    the Andrews lag and the rows/(rows − P) factor, as the ML computed it until then.
+    """
+    res = estimate_gains(a, b, w.payload, w.robot.apriori_gains, estimator=Estimator.ML)
+    fit = res.ml
+    assert fit is not None  # the ML branch always sets it
+    theta = np.concatenate([fit.chi, fit.gains, fit.payload_unknown])
+    kt_inv = np.linalg.inv(np.asarray(a.kt, float))
+    whiten = Whitening(fit.noise, fit.kappa)
+    blocks = [whitened_block(theta, run_arrays(d, w.payload), kt_inv, whiten) for d in (a, b)]
+    meat = LongRunSum(theta.size, bartlett_lag([ew for _, ew in blocks]))
+    for jw, ew in blocks:
+        meat.add(scores(jw, ew))
+        meat.end_run()
+    cov = sandwich(fit.hessian, meat.meat(), fit.rows, theta.size)
+    g = slice(a.nb, a.nb + a.n)
+    return GainEstimate(
+        method="ML",
+        gains=fit.gains,
+        std=np.sqrt(np.diag(cov)[g]),
+        coupled=True,
+        details={"lag": float(meat.lag)},
+        gain_cov=cov[g, g],
+    )
+
+
 def _ours_cad(a: Design, b: Design, w: World) -> GainEstimate:
     return ours_gains(a, b, replace(w.payload, known=PAYLOAD_PARAMS), w.robot.apriori_gains)
 
@@ -125,7 +156,8 @@ METHODS: tuple[Method, ...] = (
         False,
         _ours,
         "maximum likelihood in current units (the model of eq. 21 solved for the currents), "
-        "noise covariance estimated with the parameters, coupled V; HAC σ (Newey-West)",
+        "noise covariance estimated with the parameters, coupled V; σ from the errors' "
+        "autocovariance corrected for the fit",
     ),
     Method(
         PAPER,
@@ -196,6 +228,16 @@ METHODS: tuple[Method, ...] = (
         _ours_plain,
         "ablation: our estimator with one variance for every entry, none apart near reversals "
         'of Coulomb friction (docs/model.md, "Reversals")',
+    ),
+    Method(
+        "ours_nw",
+        "ours, Newey-West σ",
+        True,
+        True,
+        True,
+        _ours_newey_west,
+        "ablation: our estimate with the Newey-West σ on the per-sample scores it reported "
+        'before (docs/model.md, "Standard deviations")',
     ),
 )
 

@@ -14,6 +14,7 @@ import pytest
 from scipy.stats import chi2
 
 from drivegain.identify import cases, mlmodel
+from drivegain.identify.autocov import LaggedSums
 from drivegain.identify.crossval import split_factors, split_runs
 from drivegain.identify.design import ls_transform, make_design
 from drivegain.identify.eiv import eiv_test
@@ -172,9 +173,12 @@ def test_eiv_test_equals_its_whole_matrix_form(world, pair) -> None:
     np.testing.assert_allclose(test.ls_gains, theta_ls[g], rtol=RTOL)
     ls_cov = _meat_by_lags([x[:, g] for x in infl_ls], fit.lag)
     np.testing.assert_allclose(test.ls_std, np.sqrt(np.diag(ls_cov)), rtol=RTOL)
-    # and the fit's own covariance is the sandwich of the whole scores
-    scores = [np.matmul(ew[:, None, :], jw)[:, 0, :] for jw, ew in blocks]
-    cov = sandwich(bread, _meat_by_lags(scores, fit.lag), fit.rows, theta.size)
+    # and the fit's own covariance is the one of each run's whole arrays in one block
+    sums = LaggedSums(h_ml, fit.lag)
+    for jw, ew in blocks:
+        sums.add(jw, ew)
+        sums.end_run()
+    cov = sums.covariance()[0]
     np.testing.assert_allclose(fit.gain_std, np.sqrt(np.diag(cov))[g], rtol=RTOL)
 
 
