@@ -102,6 +102,26 @@ def write_atomic(location: str, data: bytes) -> None:
         raise
 
 
+def remove_stale_parts(location: str) -> list[str]:
+    """Delete the temporary files :func:`write_atomic` left below ``location``, return them.
+
+    A worker killed between opening and moving its temporary file leaves it behind; the task
+    that runs again in its place calls this first, so the results folder holds only whole
+    files. Only names :func:`write_atomic` gives (``.NAME.HEX.part``) are touched.
+    """
+    fs, path = filesystem(location)
+    if not fs.exists(path):
+        return []
+    stale = [
+        p
+        for p in fs.find(path)
+        if posixpath.basename(p).startswith(".") and posixpath.basename(p).endswith(".part")
+    ]
+    for p in stale:
+        fs.rm(p)
+    return stale
+
+
 def put_file(local: Path, location: str) -> None:
     """Copy the local file ``local`` to ``location`` (atomically, as :func:`write_atomic`)."""
     write_atomic(location, local.read_bytes())

@@ -189,6 +189,9 @@ def run_task(task: Task, out: str) -> TaskResult:
     if previous is not None:
         return previous
     folder = task_folder(out, task)
+    # A worker that died writing this task's files left its temporary ones: this run replaces
+    # them (Dask runs a task again only once its first worker is gone).
+    storage.remove_stale_parts(folder)
     start, cpu = time.perf_counter(), time.process_time()
     result = TaskResult(
         task=asdict(task), fingerprint=task.fingerprint(), status="ok", worker=_worker_name()

@@ -64,10 +64,17 @@ class LaggedSums:
     Feed each run's consecutive row blocks with :meth:`add` and close it with :meth:`end_run`
     before the next run; :meth:`covariance` then gives the estimate's covariance.
 
+    Runs may also be fed to separate instances (one per process) and joined with
+    :meth:`merge`.
+
     Parameters
     ----------
     h_inv
-        H⁻¹, the inverse (or pseudo-inverse) of ``Σ J_kᵀ J_k`` over every run, (P, P).
+        H⁻¹ for the fit's projection: the inverse (or pseudo-inverse) of ``Σ J_kᵀ J_k`` over
+        every run, or of a close approximation such as the last Gauss-Newton step's, (P, P).
+        It enters only the correction for the fit (a term of order P/N), so a relative error ε
+        in it moves the covariance by about ε·P/N. The sandwich's bread is always the exact
+        ``Σ J_kᵀ J_k`` accumulated here (:attr:`bread`).
     lag
         L, the longest lag of the errors' autocovariance, samples (≥ 0).
     """
@@ -87,6 +94,24 @@ class LaggedSums:
         self._count = np.zeros(self.lag + 1)  # Σ_runs n (N − l)
         self._tails: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._run_samples = 0
+        self._n = 0
+
+    @property
+    def bread(self) -> np.ndarray:
+        """H = Σ J_kᵀ J_k over every sample added, (P, P)."""
+        return np.asarray(self._gram[0])
+
+    def merge(self, other: LaggedSums) -> None:
+        """Add the closed runs of ``other`` (same H⁻¹ and lag) to these."""
+        if other.lag != self.lag or other._gram.shape != self._gram.shape:
+            raise UsageError(f"cannot merge sums of lag {other.lag} into sums of lag {self.lag}")
+        if self._tails is not None or other._tails is not None:
+            raise UsageError("close every run (end_run) before merging")
+        self._gram += other._gram
+        self._trace += other._trace
+        self._q += other._q
+        self._count += other._count
+        self._n = self._n or other._n
 
     def add(self, jac: np.ndarray, resid: np.ndarray) -> None:
         """Add the next rows of the current run.
@@ -105,7 +130,8 @@ class LaggedSums:
             raise UsageError(f"expected (rows, n, {p}) and (rows, n), got {j.shape}, {e.shape}")
         if j.shape[0] == 0:
             return
-        z = j @ self._h_inv
+        # One (rows·n, P) product: a batched (n, P) @ (P, P) matmul is many times slower.
+        z = (j.reshape(-1, p) @ self._h_inv).reshape(j.shape)
         if self._tails is not None:
             tj, tz, te = self._tails
             j, z, e = np.concatenate([tj, j]), np.concatenate([tz, z]), np.concatenate([te, e])
@@ -119,11 +145,12 @@ class LaggedSums:
                 break
             # Pairs (t − d, t) whose later sample t is new in this block.
             later, earlier = slice(start, rows), slice(start - d, rows - d)
-            self._trace[d] += float(np.sum(z[earlier] * j[later]))
+            # Row ranges of C-ordered arrays are contiguous: dot products without temporaries.
+            self._trace[d] += float(np.vdot(z[earlier], j[later]))
             if d <= self.lag:
                 a = j[earlier].reshape(-1, p)
                 self._gram[d] += a.T @ j[later].reshape(-1, p)
-                self._q[d] += float(np.sum(e[earlier] * e[later]))
+                self._q[d] += float(np.vdot(e[earlier], e[later]))
         self._run_samples += rows - first
         keep = min(rows, 2 * self.lag)
         self._tails = (j[rows - keep :], z[rows - keep :], e[rows - keep :]) if keep else None
@@ -139,7 +166,8 @@ class LaggedSums:
 
     def covariance(self) -> tuple[np.ndarray, ErrorAutocovariance]:
         """``H⁻¹ (Jᵀ Ω̂ J) H⁻¹`` with Ω̂ from the bias-corrected autocovariance, (P, P)."""
-        lag, h_inv = self.lag, self._h_inv
+        lag = self.lag
+        h_inv = np.linalg.pinv(self._gram[0], hermitian=True)
         p = h_inv.shape[0]
         if self._count[0] <= p:
             raise UsageError(f"need more equations ({self._count[0]:.0f}) than parameters ({p})")

@@ -371,6 +371,7 @@ def ml_fit(
             # The whitened Jacobian has the rank of the Jacobian (the whitening is invertible).
             _check_rank(r_aug[:-1, :-1], names, nb, n)
         r_mat, q = r_aug[:-1, :-1], r_aug[:-1, -1]
+        last_r = r_mat
         delta = scipy.linalg.solve_triangular(r_mat, q)
         # ‖J̃δ‖² is how many standard deviations (squared) the fit moves.
         step_sq = float(np.sum((r_mat @ delta) ** 2))
@@ -415,18 +416,25 @@ def ml_fit(
     lag = bartlett_lag(white)
     rho = lag1_autocorrelation(white)
     del white
-    bread = np.zeros((theta.size, theta.size))
-    for r in runs:
-        for sl in chunks(r.samples):
-            flat = whitened_block(theta, r.rows(sl), kt_inv, whiten)[0].reshape(-1, theta.size)
-            bread += flat.T @ flat
     lag = max(lag, MIN_LAG)
-    sums = LaggedSums(np.linalg.pinv(bread, hermitian=True), lag)
-    for r in runs:
-        for sl in chunks(r.samples):
-            sums.add(*whitened_block(theta, r.rows(sl), kt_inv, whiten))
-        sums.end_run()
+    # The fit's projection with the last Gauss-Newton step's H (moved by less than 1e-5 σ
+    # since): one pass over the blocks, the first run's in a forked child meanwhile.
+    h_inv = np.linalg.pinv(last_r.T @ last_r, hermitian=True)
+    first = forked.start(
+        "maximum-likelihood covariance",
+        lambda: _run_sums(theta, runs[0], kt_inv, whiten, h_inv, lag),
+        parallel=parallel and len(runs) > 1,
+    )
+    try:
+        rest = [_run_sums(theta, r, kt_inv, whiten, h_inv, lag) for r in runs[1:]]
+    except BaseException:
+        first.cancel()
+        raise
+    sums = first.result()
+    for other in rest:
+        sums.merge(other)
     cov, autocov = sums.covariance()
+    bread = sums.bread
     rows = sum(r.samples for r in runs) * n
     chi, g, chi_u = split_theta(theta, nb, n)
     return MLFit(
@@ -446,6 +454,22 @@ def ml_fit(
         rows=rows,
         hessian=bread,
     )
+
+
+def _run_sums(
+    theta: np.ndarray,
+    run: RunArrays,
+    kt_inv: np.ndarray,
+    whiten: Whitening,
+    h_inv: np.ndarray,
+    lag: int,
+) -> LaggedSums:
+    """One run's lagged sums for the covariance (:class:`~.autocov.LaggedSums`)."""
+    sums = LaggedSums(h_inv, lag)
+    for sl in chunks(run.samples):
+        sums.add(*whitened_block(theta, run.rows(sl), kt_inv, whiten))
+    sums.end_run()
+    return sums
 
 
 def _augmented_factor(
