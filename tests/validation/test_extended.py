@@ -31,7 +31,7 @@ from drivegain.validation.estimators import (
     seed_runs,
     seed_world,
 )
-from drivegain.validation.mustshow import scenario_checks
+from drivegain.validation.mustshow import scenario_checks, spread_interval
 from drivegain.validation.scenarios import (
     RANDOM_BASE_HZ,
     RANDOM_HARMONICS,
@@ -217,12 +217,29 @@ def test_must_show_verdicts_on_a_made_up_summary() -> None:
     assert verdicts["gain z spread 0.9-1.1"] is True
     rms = [v for k, v in verdicts.items() if k.startswith("RMS")]
     assert rms == [False]
+    # A spread outside the target is named only when its interval misses the target too.
+    methods[OURS] = dict(good, seeds=40, z_std=[1.0, 1.15, 0.5, 1.0, 1.0, 1.0])
+    spread = next(
+        c for c in scenario_checks(current, {"methods": methods}) if "z spread" in c.target
+    )
+    assert spread.passed is False and spread.value.endswith("sampling error: j3")
     # Torque noise: every non-ablation method counts; an ablation better than ours does not.
     methods = {m.key: _stats([0.2] * 6) for m in METHODS}
     methods[OURS] = good
     methods["ours_cad"] = _stats([0.01] * 6)
     checks = scenario_checks(SCENARIOS[0], {"methods": methods})
     assert [c.passed for c in checks if c.target.startswith("RMS")] == [True]
+
+
+def test_spread_interval_covers_the_true_spread() -> None:
+    """Drawn z of unit spread: the 95 % interval holds 1 in about 95 % of 4000 draws."""
+    rng = np.random.default_rng(8)
+    seeds = 40
+    z = rng.standard_normal((4000, seeds))
+    s = z.std(axis=1, ddof=1)
+    inside = [lo <= 1.0 <= hi for lo, hi in (spread_interval(x, seeds) for x in s)]
+    assert 0.94 < np.mean(inside) < 0.96
+    assert all(math.isnan(v) for v in spread_interval(1.0, 1))
 
 
 def test_capped_scenarios_stop_at_their_cap(monkeypatch: pytest.MonkeyPatch) -> None:
