@@ -417,8 +417,9 @@ def ml_fit(
     rho = lag1_autocorrelation(white)
     del white
     lag = max(lag, MIN_LAG)
-    # The fit's projection with the last Gauss-Newton step's H (moved by less than 1e-5 σ
-    # since): one pass over the blocks, the first run's in a forked child meanwhile.
+    # The fit's projection with the last Gauss-Newton step's H (once converged, θ moved by
+    # less than 1e-5 σ since; an error in it only touches the correction for the fit, see
+    # LaggedSums): one pass over the blocks, the first run's in a forked child meanwhile.
     h_inv = np.linalg.pinv(last_r.T @ last_r, hermitian=True)
     first = forked.start(
         "maximum-likelihood covariance",
