@@ -349,7 +349,8 @@ def build_parser() -> argparse.ArgumentParser:
         choices=("ml", "paper"),
         default="ml",
         help="gain estimator: 'ml', maximum likelihood in current units with a noise model "
-        "estimated from the data and HAC standard deviations, or 'paper', the paper's "
+        "estimated from the data and standard deviations from the errors' autocovariance, or "
+        "'paper', the paper's "
         "IDIM-WTLS with the column weight α searched on a grid",
     )
     p.add_argument(

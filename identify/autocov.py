@@ -189,9 +189,7 @@ class LaggedSums:
                     t2 = tr_d[l + m] + near
                 t4 = float(np.sum(he[l] * hd[m].T))  # tr(H⁻¹ E_l H⁻¹ D_m)
                 a[l, m] = (self._count[l] if l == m else 0.0) - t2 + t4
-        gamma = np.linalg.solve(a, self._q)
-        gamma, tapered = _positive(gamma, gram)
-        meat = sum(g * d for g, d in zip(gamma, gram, strict=True))
+        gamma, meat, tapered = _positive(np.linalg.solve(a, self._q), gram)
         cov = h_inv @ meat @ h_inv
         info = ErrorAutocovariance(
             gamma=gamma,
@@ -201,9 +199,9 @@ class LaggedSums:
         return np.asarray(0.5 * (cov + cov.T)), info
 
 
-def _positive(gamma: np.ndarray, gram: list[np.ndarray]) -> tuple[np.ndarray, bool]:
-    """γ whose meat ``Σ γ_m D_m`` is positive semi-definite: as it is, Bartlett weighted, or
-    lag 0 only.
+def _positive(gamma: np.ndarray, gram: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, bool]:
+    """γ whose meat ``Σ γ_m D_m`` is positive semi-definite (as it is, Bartlett weighted, or
+    lag 0 only), that meat, and whether γ was changed.
 
     Why the meat and not the spectral density: decimated errors have almost no power near the
     new Nyquist frequency, so a few estimated lags often give a density slightly below zero
@@ -213,15 +211,21 @@ def _positive(gamma: np.ndarray, gram: list[np.ndarray]) -> tuple[np.ndarray, bo
     if gamma[0] <= 0.0:
         raise UsageError(f"the errors' variance came out {gamma[0]:.3g} (≤ 0)")
 
-    def psd(g: np.ndarray) -> bool:
-        meat = sum(gm * d for gm, d in zip(g, gram, strict=True))
-        scale = np.sqrt(np.clip(np.diag(gram[0]), 1e-300, None))
+    scale = np.sqrt(np.clip(np.diag(gram[0]), 1e-300, None))
+
+    def meat_of(g: np.ndarray) -> np.ndarray:
+        return np.asarray(sum(gm * d for gm, d in zip(g, gram, strict=True)))
+
+    def psd(meat: np.ndarray) -> bool:
         eig = np.linalg.eigvalsh(meat / np.outer(scale, scale))
         return bool(eig.min() >= -PSD_TOL * max(eig.max(), 1e-300))
 
-    if psd(gamma):
-        return gamma, False
+    meat = meat_of(gamma)
+    if psd(meat):
+        return gamma, meat, False
     tapered = gamma * (1.0 - np.arange(gamma.size) / gamma.size)
-    if psd(tapered):
-        return tapered, True
-    return np.concatenate([gamma[:1], np.zeros(gamma.size - 1)]), True
+    meat = meat_of(tapered)
+    if psd(meat):
+        return tapered, meat, True
+    white = np.concatenate([gamma[:1], np.zeros(gamma.size - 1)])
+    return white, meat_of(white), True

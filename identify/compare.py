@@ -177,9 +177,9 @@ def ours_gains(a: Design, b: Design, payload: Payload, apriori: np.ndarray) -> G
     """The default estimator: maximum likelihood in current units (:mod:`~drivegain.identify.ml`).
 
     Arguments as :func:`wtls_gains` (``apriori`` is unused: the search starts from a least
-    squares). Returns the gains (N·m/A) with HAC standard deviations and covariance;
-    ``details``: Newey-West lag (samples), search rounds, and the errors-in-variables test's
-    statistic and p-value.
+    squares). Returns the gains (N·m/A) with standard deviations and covariance from the
+    errors' autocovariance (:mod:`~drivegain.identify.autocov`); ``details``: its longest lag
+    (samples), search rounds, and the errors-in-variables test's statistic and p-value.
     """
     res = estimate_gains(a, b, payload, np.asarray(apriori, dtype=float), estimator=Estimator.ML)
     assert res.ml is not None and res.eiv is not None  # the ML branch always sets both

@@ -38,8 +38,8 @@ GAIN_RSD_WARN = 5.0
 class Estimator(StrEnum):
     """How the gains are estimated from the unloaded and the loaded run."""
 
-    #: Maximum likelihood in current units with an estimated noise covariance and a HAC
-    #: covariance (:mod:`drivegain.identify.ml`); the default.
+    #: Maximum likelihood in current units with an estimated noise covariance, σ from the
+    #: errors' autocovariance corrected for the fit (:mod:`drivegain.identify.ml`); the default.
     ML = "ml"
     #: The paper's IDIM-WTLS with the V-column weight α searched on a grid (§3).
     PAPER = "paper"
@@ -74,8 +74,8 @@ class GainIdentification:
         :func:`drivegain.identify.estimate.tls_covariance`).
     block, clusters
         Window length (samples) and number of clusters of the covariance estimate
-        (:func:`~drivegain.identify.wtls.wtls_covariance`); for ``ml`` the Newey-West lag
-        (samples) and 0.
+        (:func:`~drivegain.identify.wtls.wtls_covariance`); for ``ml`` the longest lag of the
+        errors' autocovariance (samples) and 0.
     payload_names, payload_unknown, payload_std
         The payload parameters the WTLS identified along with the gains.
     warnings

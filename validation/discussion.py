@@ -78,13 +78,13 @@ def coverage_text(
     )
     lines.append("")
     lines.append(
-        "Ours accounts for it: its covariance is a HAC sandwich, the Newey-West (Bartlett) "
-        "long-run covariance of the per-sample scores with the lag chosen from the whitened "
-        "residuals' lag-1 autocorrelation, and the small-sample factor r/(r − p) "
-        '(docs/model.md, "Estimators"). The Case 2 payload parameters use the same sandwich '
-        "plus the gains' covariance carried through the fit. The per-joint LS σ of joint 5 is "
-        "too small for another reason: it ignores the uncertainty of ĝ6, which enters joint "
-        "5's known column."
+        "Ours accounts for it: its covariance is built from the whitened errors' "
+        "autocovariance over a few lags, corrected for what the fit takes out of the "
+        'residuals (docs/model.md, "Standard deviations"); the ablation with the Newey-West '
+        "sandwich it used before shows what that changes. The Case 2 payload parameters use "
+        "the Newey-West sandwich plus the gains' covariance carried through the fit. The "
+        "per-joint LS σ of joint 5 is too small for another reason: it ignores the "
+        "uncertainty of ĝ6, which enters joint 5's known column."
     )
     return "\n".join(lines)
 
