@@ -61,8 +61,10 @@ class CompactRegressor:
         """The samples ``sl`` (a view, no copy)."""
         return replace(self, series=self.series[sl])
 
-    def _lookup(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """For the columns ``idx``: joints, positions in ``idx`` and series of the kept entries."""
+    def entries(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The kept entries among the columns ``idx``: their joints, their positions in ``idx``
+        and their series (indices into :attr:`series`), three (m,) arrays in C order of
+        (joint, position)."""
         where = np.full((self.n, self.c), -1, dtype=np.intp)
         where[self.joint, self.column] = np.arange(self.joint.size)
         sel = where[:, np.asarray(idx, dtype=np.intp)]
@@ -72,7 +74,7 @@ class CompactRegressor:
     def gather(self, idx: np.ndarray) -> np.ndarray:
         """``dense[:, :, idx]``, (N, n, len(idx)) (a new array)."""
         idx = np.asarray(idx, dtype=np.intp)
-        jj, pp, ss = self._lookup(idx)
+        jj, pp, ss = self.entries(idx)
         out = np.zeros((self.samples, self.n, idx.size))
         out[:, jj, pp] = self.series[:, ss]
         return out
@@ -80,7 +82,7 @@ class CompactRegressor:
     def joint_columns(self, j: int, idx: np.ndarray) -> np.ndarray:
         """``dense[:, j, idx]``, (N, len(idx)) (a new array)."""
         idx = np.asarray(idx, dtype=np.intp)
-        jj, pp, ss = self._lookup(idx)
+        jj, pp, ss = self.entries(idx)
         mine = jj == j
         out = np.zeros((self.samples, idx.size))
         out[:, pp[mine]] = self.series[:, ss[mine]]

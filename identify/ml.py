@@ -23,14 +23,15 @@ IDIM-WTLS instead spreads the errors over the V columns with a weight α that th
 choose (docs/model.md, "Estimators"), and a least squares with V as regressor (the known
 payload on the right-hand side) is attenuated by current noise.
 
-The parameters are found by Gauss-Newton on the whitened residuals (normal matrix from R
-factors built in row blocks; the model's currents and Jacobian are in :mod:`.mlmodel`), Σ
-re-estimated at every step (a coordinate descent of the profiled likelihood, which converges to
-its stationary point), started from that linear least squares; κ is estimated once, when the
-fit with κ = 0 has nearly settled, and held from there. The covariance is ``H⁻¹ Jᵀ Ω̂ J H⁻¹``
-with Ω̂ the whitened errors' autocovariance over a few lags, corrected for what the fit takes
-out of the residuals (:mod:`drivegain.identify.autocov`; the Newey-West estimate on the
-per-sample scores it replaced was 10-20 % too small).
+The parameters are found by Gauss-Newton on the whitened residuals (the model's currents and
+Jacobian are in :mod:`.mlmodel`; the steps work on the runs reduced once per κ to the R factor
+of their data, :mod:`.mlreduce`, not on the samples), Σ re-estimated at every step (a coordinate
+descent of the profiled likelihood, which converges to its stationary point), started from that
+linear least squares; κ is estimated once, when the fit with κ = 0 has nearly settled, and held
+from there. The covariance is ``H⁻¹ Jᵀ Ω̂ J H⁻¹`` with Ω̂ the whitened errors' autocovariance
+over a few lags, corrected for what the fit takes out of the residuals
+(:mod:`drivegain.identify.autocov`; the Newey-West estimate on the per-sample scores it replaced
+was 10-20 % too small).
 """
 
 from __future__ import annotations
@@ -44,7 +45,7 @@ import scipy.optimize
 
 from drivegain.config.payload import PAYLOAD_PARAMS, Payload
 from drivegain.errors import IdentificationError
-from drivegain.identify import forked
+from drivegain.identify import forked, mlreduce
 from drivegain.identify.autocov import ErrorAutocovariance, LaggedSums
 from drivegain.identify.design import Design
 from drivegain.identify.estimate import r_factor
@@ -57,7 +58,6 @@ from drivegain.identify.mlmodel import (
     predict,
     run_arrays,
     split_theta,
-    unscaled,
     whitened_block,
 )
 
@@ -206,20 +206,6 @@ def _round_off(mean_square: np.ndarray) -> np.ndarray:
     return np.maximum(ROUND_OFF_VARIANCE * mean_square, 1e-300)
 
 
-def _noise(
-    resid: Sequence[np.ndarray], floor: np.ndarray, runs: Sequence[RunArrays], kappa: np.ndarray
-) -> Whitening:
-    """Σ̂ of the residuals with κ = ``kappa`` (:class:`~.mlmodel.Whitening`).
-
-    Σ̂ is the mean outer product of the residuals scaled back by 1/√(1 + κ s). Its diagonal is
-    floored at ``floor`` (:func:`_round_off`): with exact (noise-free) data Σ̂ stays invertible
-    and stops changing from one round to the next, and a real estimate is not changed.
-    """
-    e = np.vstack([unscaled(e, r.reversal, kappa) for e, r in zip(resid, runs, strict=True)])
-    cov = e.T @ e / e.shape[0]
-    return Whitening(np.asarray(cov + np.diag(floor)), kappa)
-
-
 @dataclass(frozen=True)
 class LinearStart:
     """The least squares with V as regressor (:func:`least_squares`).
@@ -348,15 +334,18 @@ def ml_fit(
     def residuals(th: np.ndarray) -> list[np.ndarray]:
         return [r.v - predict(th, r, kt_inv)[0] for r in runs]
 
-    def whitened_sq(resid: list[np.ndarray], whiten: Whitening) -> float:
-        pairs = zip(resid, runs, strict=True)
-        return float(sum(np.sum(whiten.apply(e, r.reversal) ** 2) for e, r in pairs))
+    def noise(th: np.ndarray, kappa: np.ndarray) -> Whitening:
+        # Σ̂ of the scaled residuals, its diagonal floored (see _round_off), from the reduced runs
+        gram = mlreduce.residual_gram(reduced, th, nb, kt_inv)
+        return Whitening(np.asarray(gram / samples + np.diag(floor)), kappa)
 
     converged = False
     rounds = 0
+    samples = sum(r.samples for r in runs)
     floor = _round_off(np.mean(np.vstack([r.v for r in runs]) ** 2, axis=0))
-    resid = residuals(theta)
-    whiten = _noise(resid, floor, runs, np.zeros(n))
+    # Each step works on the runs reduced once per κ (:mod:`.mlreduce`), not on the samples.
+    reduced = _reduce(runs, kt_inv, np.zeros(n), parallel)
+    whiten = noise(theta, np.zeros(n))
     # κ is estimated once, from the residuals of the fit with κ = 0 once it has (nearly)
     # settled, and then held: re-estimated with θ, it would feed on itself (entries that count
     # less are fitted less, their residuals grow, κ grows) and drift towards dropping them.
@@ -366,7 +355,7 @@ def ml_fit(
         # Coordinate descent of the profiled likelihood: one Gauss-Newton step of θ with Σ
         # fixed (step halving until the whitened residuals shrink), then Σ from the new
         # residuals. Each half lowers the likelihood's negative.
-        r_aug = _augmented_factor(theta, runs, kt_inv, whiten, parallel)
+        r_aug = mlreduce.augmented_factor(reduced, theta, nb, kt_inv, whiten)
         if rounds == 1:
             # The whitened Jacobian has the rank of the Jacobian (the whitening is invertible).
             _check_rank(r_aug[:-1, :-1], names, nb, n)
@@ -380,19 +369,22 @@ def ml_fit(
         while lam > 1e-6:
             trial = theta + lam * delta
             if np.all(trial[nb : nb + n] != 0.0):
-                tried = residuals(trial)
-                if whitened_sq(tried, whiten) <= before:
-                    theta, resid = trial, tried
+                if mlreduce.whitened_sq(reduced, trial, nb, kt_inv, whiten) <= before:
+                    theta = trial
                     break
             lam *= 0.5
         # else: no decrease along the step (round-off at the optimum): θ stays
-        new = _noise(resid, floor, runs, whiten.kappa)
+        new = noise(theta, whiten.kappa)
         change = float(np.max(np.abs(np.diag(new.noise) / np.diag(whiten.noise) - 1.0)))
         whiten = new
         still = step_sq < DECREMENT_TOL or lam <= 1e-6
         if kappa_due and step_sq < KAPPA_STEP_TOL and change < KAPPA_STEP_TOL:
+            resid = residuals(theta)
             kappa = _kappas(resid, runs, whiten.noise, floor)
-            whiten = _noise(resid, floor, runs, kappa)
+            del resid
+            if np.any(kappa != 0.0):
+                reduced = _reduce(runs, kt_inv, kappa, parallel)
+            whiten = noise(theta, kappa)
             kappa_due = False
             continue
         if still and change < NOISE_TOL and not kappa_due:
@@ -473,44 +465,22 @@ def _run_sums(
     return sums
 
 
-def _augmented_factor(
-    theta: np.ndarray,
-    runs: Sequence[RunArrays],
-    kt_inv: np.ndarray,
-    whiten: Whitening,
-    parallel: bool = False,
-) -> np.ndarray:
-    """R factor of ``[J̃ | ẽ]`` (whitened Jacobian of v̂ and residuals), built in row blocks.
-
-    ``RᵀR = [J̃ | ẽ]ᵀ[J̃ | ẽ]``: its top-left block gives the Gauss-Newton normal matrix, its
-    last column J̃ᵀẽ in the rotated basis; no tall matrix is ever held whole. Each run is reduced
-    on its own and the factors are stacked; with ``parallel`` the first run's is computed in a
-    forked child (:mod:`.forked`) meanwhile, with the same result.
-    """
+def _reduce(
+    runs: Sequence[RunArrays], kt_inv: np.ndarray, kappa: np.ndarray, parallel: bool = False
+) -> list[mlreduce.ReducedRun]:
+    """Every run reduced at ``kappa`` (:func:`.mlreduce.reduce_run`); with ``parallel`` the
+    first run in a forked child (:mod:`.forked`) meanwhile, with the same result."""
     first = forked.start(
-        "maximum-likelihood step",
-        lambda: _run_factor(theta, runs[0], kt_inv, whiten),
+        "maximum-likelihood reduction",
+        lambda: mlreduce.reduce_run(runs[0], kt_inv, kappa),
         parallel=parallel and len(runs) > 1,
     )
     try:
-        rest = [_run_factor(theta, r, kt_inv, whiten) for r in runs[1:]]
+        rest = [mlreduce.reduce_run(r, kt_inv, kappa) for r in runs[1:]]
     except BaseException:
         first.cancel()
         raise
-    return r_factor(np.vstack([first.result(), *rest]))
-
-
-def _run_factor(
-    theta: np.ndarray, run: RunArrays, kt_inv: np.ndarray, whiten: Whitening
-) -> np.ndarray:
-    """R factor of one run's ``[J̃ | ẽ]`` (:func:`_augmented_factor`), (P + 1, P + 1)."""
-    p = theta.size
-    r = np.zeros((p + 1, p + 1))
-    for sl in chunks(run.samples):
-        jw, ew = whitened_block(theta, run.rows(sl), kt_inv, whiten)
-        block = np.concatenate([jw.reshape(-1, p), ew.reshape(-1, 1)], axis=1)
-        r = r_factor(np.vstack([r, block]))
-    return r
+    return [first.result(), *rest]
 
 
 def _whitened_residuals(

@@ -13,9 +13,6 @@ recording's length, with a small constant) whatever the recording's length.
 
 from __future__ import annotations
 
-import functools
-import itertools
-import math
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -32,11 +29,23 @@ from drivegain.errors import DataError
 from drivegain.formats.trajectory import attached_fourier
 from drivegain.identify.compact import CompactRegressor
 from drivegain.identify.reversals import reversal_zones
-from drivegain.identify.signal import FilterSettings, derivatives, parallel_decimate
+from drivegain.identify.signal import (
+    FilterSettings,
+    decimation_memory,
+    decimation_windows,
+    derivatives,
+    parallel_decimate,
+)
 
 #: Full-rate samples per regressor evaluation and least decimation chunk: the (chunk, n, 86)
 #: temporary is ~17 MB for n = 6.
 CHUNK = 4096
+#: Decimation windows span at least this many filter memories: each is filtered with a memory
+#: on either side that its neighbours filter too, so 1/8 of the samples is filtered twice...
+WINDOW_PADS = 16
+#: ... unless a window's regressor series would take more bytes than this (at 5 kHz a memory is
+#: 5 560 samples); windows of two memories are the least.
+WINDOW_BYTES = 32 * 2**20
 
 #: Called with the number of full-rate samples just processed (progress display).
 Progress = Callable[[int], None]
@@ -373,38 +382,6 @@ def at_rest(qd: np.ndarray) -> np.ndarray:
     return np.asarray(np.all(still, axis=1))
 
 
-def _chunks(n: int, factor: int, size: int) -> list[tuple[int, int]]:
-    """Chunk boundaries on multiples of ``factor`` (so decimated samples line up)."""
-    size = max(factor, (size // factor) * factor)
-    count = max(1, math.ceil(n / size))
-    bounds = [min(n, round(i * n / count / factor) * factor) for i in range(count)] + [n]
-    return [(a, b) for a, b in itertools.pairwise(bounds) if b > a]
-
-
-@functools.cache
-def decimation_memory(factor: int, tol: float = 1e-11) -> int:
-    """Input samples over which :func:`parallel_decimate`'s filter remembers, to ``tol``.
-
-    Measured on the filter itself: the (zero-phase, symmetric) response to an impulse, out to
-    where it stays below ``tol`` of its peak. Chunks that overlap by this much give the same
-    decimated samples as the whole signal, to ``tol`` relative.
-    """
-    if factor == 1:
-        return 0
-    length = 1000 * factor
-    while True:
-        x = np.zeros((length, 1))
-        x[length // 2] = 1.0
-        (y,) = parallel_decimate([x], factor, 0)
-        h = np.abs(y[:, 0])
-        centre = int(np.argmax(h))
-        above = np.flatnonzero(h > tol * h[centre])
-        reach = int(max(centre - above[0], above[-1] - centre))
-        if reach < len(h) // 4:
-            return (reach + 2) * factor
-        length *= 4
-
-
 def _nonzero_series(model: RobotModel, columns: Sequence[str]) -> np.ndarray:
     """(n, c) mask of the regressor entries that are not identically zero (joint rows do not
     depend on the links before them), from random states."""
@@ -451,7 +428,7 @@ def prepare_recording(
 
     The full-rate regressor exists only for a window of samples at a time: each chunk is
     decimated with the samples around it that the decimation filter remembers
-    (:func:`decimation_memory`), which the next chunk reuses rather than recomputes, so the
+    (:func:`~.signal.decimation_memory`), which the next chunk reuses rather than recomputes, so the
     result equals a whole-signal decimation and memory stays bounded by the decimated output.
     Structurally zero regressor entries are not filtered.
 
@@ -496,10 +473,12 @@ def prepare_recording(
     qf = derivatives(q, rate_hz, settings, source=src)[0]
     f = settings.decimate
     pad = decimation_memory(f)
-    size = max(CHUNK, 2 * pad)
-    parts = [(0, n_samples)] if n_samples <= size + 2 * pad else _chunks(n_samples, f, size)
-    live = _nonzero_series(model, columns)
-    rows, cols = np.nonzero(live)
+    rows, cols = np.nonzero(_nonzero_series(model, columns))
+    cap = WINDOW_BYTES // (8 * max(1, rows.size)) - 2 * pad
+    size = max(CHUNK, 2 * pad, min(WINDOW_PADS * pad, cap))
+    parts = [(0, n_samples)]
+    if n_samples > size + 2 * pad:
+        parts = decimation_windows(n_samples, f, size)
     # Decimate the currents once, whole: they are small. Same filter, so the same result.
     # The rest indicator goes through the same filter: a kept sample's filter window holds
     # (almost) no sample at rest.

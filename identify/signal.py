@@ -14,6 +14,7 @@ All time series have time along axis 0; rates are in Hz.
 from __future__ import annotations
 
 import functools
+import itertools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -431,3 +432,36 @@ def parallel_decimate(
             res[:, c0 : c0 + _COLUMN_BLOCK] = block
         out.append(res[trim : n - trim].reshape((n - 2 * trim, *x.shape[1:])))
     return out
+
+
+def decimation_windows(n: int, factor: int, size: int) -> list[tuple[int, int]]:
+    """Boundaries of about ``size`` samples each, on multiples of ``factor`` (so the decimated
+    samples of the windows line up), covering ``n`` samples."""
+    size = max(factor, (size // factor) * factor)
+    count = max(1, math.ceil(n / size))
+    bounds = [min(n, round(i * n / count / factor) * factor) for i in range(count)] + [n]
+    return [(a, b) for a, b in itertools.pairwise(bounds) if b > a]
+
+
+@functools.cache
+def decimation_memory(factor: int, tol: float = 1e-11) -> int:
+    """Input samples over which :func:`parallel_decimate`'s filter remembers, to ``tol``.
+
+    Measured on the filter itself: the (zero-phase, symmetric) response to an impulse, out to
+    where it stays below ``tol`` of its peak. Chunks that overlap by this much give the same
+    decimated samples as the whole signal, to ``tol`` relative.
+    """
+    if factor == 1:
+        return 0
+    length = 1000 * factor
+    while True:
+        x = np.zeros((length, 1))
+        x[length // 2] = 1.0
+        (y,) = parallel_decimate([x], factor, 0)
+        h = np.abs(y[:, 0])
+        centre = int(np.argmax(h))
+        above = np.flatnonzero(h > tol * h[centre])
+        reach = int(max(centre - above[0], above[-1] - centre))
+        if reach < len(h) // 4:
+            return (reach + 2) * factor
+        length *= 4

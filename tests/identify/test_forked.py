@@ -76,11 +76,11 @@ def test_forked_fits_equal_fits_in_turn(world, noisy_run, monkeypatch, fork_allo
     monkeypatch.setattr(procedure, "PARALLEL_EQUATIONS", 0)
     monkeypatch.setattr(forked, "start", start)
     in_children = run_procedure(problem, Options())
-    # Case 1, each Gauss-Newton step's run a, the covariance's run a, then the other
+    # Case 1, the reduction of run a for each κ, the covariance's run a, then the other
     # friction form
     assert children[0] == "Case 1 fit" and children[-1] == "friction forms"
     assert children[-2] == "maximum-likelihood covariance"
-    assert len(children) > 3 and set(children[1:-2]) == {"maximum-likelihood step"}
+    assert len(children) > 3 and set(children[1:-2]) == {"maximum-likelihood reduction"}
     assert len(in_children.forms) == 2
     _assert_same(in_children, in_turn, "result")
 

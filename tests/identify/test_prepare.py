@@ -55,7 +55,12 @@ def test_base_sets_reproduce_torques_and_are_minimal(world, form: WristFriction)
     assert "MZ2" not in bp.names
 
 
-def test_chunked_decimation_equals_whole_signal(world, monkeypatch) -> None:
+@pytest.mark.parametrize(
+    "limits",
+    [{"CHUNK": 700, "WINDOW_PADS": 1}, {"CHUNK": 700, "WINDOW_BYTES": 1}],
+    ids=["few-pads", "byte-cap"],
+)
+def test_chunked_decimation_equals_whole_signal(world, monkeypatch, limits) -> None:
     rate = 200.0
     t = np.arange(0.0, 60.0, 1.0 / rate)
     q, _, _ = world.excitations[0].evaluate(t)[:3]
@@ -64,7 +69,8 @@ def test_chunked_decimation_equals_whole_signal(world, monkeypatch) -> None:
     st = default_filter(rate, 1.0)
     kw = dict(label="a", q=q, current=current, rate_hz=rate, settings=st)
     whole = prepare_recording(world.model, world.columns, **kw)
-    monkeypatch.setattr(prepare, "CHUNK", 700)
+    for name, value in limits.items():  # windows of two filter memories, the least
+        monkeypatch.setattr(prepare, name, value)
     seen = []
     chunked = prepare_recording(world.model, world.columns, progress=seen.append, **kw)
     assert len(seen) > 3 and sum(seen) == t.size
