@@ -53,18 +53,10 @@ class _Block:
 
 @dataclass(frozen=True)
 class Layout:
-    """Where everything stands in a run's data vector d_k (:func:`layout`).
-
-    Attributes
-    ----------
-    size
-        Length of d_k.
-    current
-        Column of each drive's current, (n,).
-    owner
-        The drive each column belongs to (whose S_k⁻¹ entry scales it), (size,).
-    blocks
-        The regressor columns, one block per (drive, joint whose torque reaches it).
+    """Where everything stands in a run's data vector d_k (:func:`layout`): its length
+    ``size``, the column of each drive's current ``current`` (n,), the drive whose S_k⁻¹ entry
+    scales each column ``owner`` (size,), and the regressor columns ``blocks``, one per (drive,
+    joint whose torque reaches it).
     """
 
     size: int
