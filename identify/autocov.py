@@ -193,7 +193,7 @@ class LaggedSums:
         cov = h_inv @ meat @ h_inv
         info = ErrorAutocovariance(
             gamma=gamma,
-            long_run=float((gamma[0] + 2.0 * gamma[1:].sum()) / gamma[0]),
+            long_run=float((gamma[0] + 2.0 * gamma[1:].sum()) / gamma[0]) if gamma[0] else 1.0,
             tapered=tapered,
         )
         return np.asarray(0.5 * (cov + cov.T)), info
@@ -209,7 +209,10 @@ def _positive(gamma: np.ndarray, gram: list[np.ndarray]) -> tuple[np.ndarray, np
     to lift it would shrink the slow content this module exists to measure.
     """
     if gamma[0] <= 0.0:
-        raise UsageError(f"the errors' variance came out {gamma[0]:.3g} (≤ 0)")
+        # Only residuals at round-off (an exact fit) leave no positive variance: nothing to
+        # spread, so no uncertainty, rather than an error the data did not cause.
+        zero = np.zeros_like(gamma)
+        return zero, np.zeros_like(gram[0]), bool(np.any(gamma != 0.0))
 
     scale = np.sqrt(np.clip(np.diag(gram[0]), 1e-300, None))
 

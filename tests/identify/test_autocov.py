@@ -116,6 +116,15 @@ def test_white_errors_give_the_textbook_covariance() -> None:
     np.testing.assert_allclose(info.gamma, [s2], rtol=1e-9)
 
 
+def test_an_exact_fit_has_no_uncertainty() -> None:
+    """Residuals of zero (noise-free data fitted exactly): zero covariance, not an error."""
+    rng = np.random.default_rng(6)
+    jac, resid, _ = _fitted(rng, runs=2, samples=120, n=2, p=5)
+    cov, info = _streamed(jac, [np.zeros_like(e) for e in resid], lag=3, block=40)
+    assert np.array_equal(cov, np.zeros_like(cov))
+    assert np.array_equal(info.gamma, np.zeros(4)) and info.long_run == 1.0
+
+
 def test_matches_monte_carlo_where_newey_west_is_short() -> None:
     """Decimated white errors, slow regressors: the σ agree with the Monte Carlo spread.
 
