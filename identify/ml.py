@@ -293,8 +293,9 @@ def ml_fit(
         ``[run_arrays(a, payload), run_arrays(b, payload)]`` when the caller has them already
         (built here otherwise).
     parallel
-        The runs are long enough for each Gauss-Newton step to reduce run a in a forked child
-        while run b is reduced here (:mod:`.forked`; the same result either way).
+        The runs are long enough for run a to be reduced (once per κ) and its covariance sums
+        built in a forked child while run b's are here (:mod:`.forked`; the same result either
+        way).
 
     Returns
     -------
@@ -335,7 +336,9 @@ def ml_fit(
         return [r.v - predict(th, r, kt_inv)[0] for r in runs]
 
     def noise(th: np.ndarray, kappa: np.ndarray) -> Whitening:
-        # Σ̂ of the scaled residuals, its diagonal floored (see _round_off), from the reduced runs
+        # Σ̂ of the scaled residuals, from the reduced runs. Its diagonal is floored at the
+        # round-off variance: with exact (noise-free) data Σ̂ stays invertible and settles, and
+        # a real estimate is not changed.
         gram = mlreduce.residual_gram(reduced, th, nb, kt_inv)
         return Whitening(np.asarray(gram / samples + np.diag(floor)), kappa)
 
