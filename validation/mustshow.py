@@ -5,8 +5,9 @@ The targets are about our estimator (:data:`~drivegain.validation.estimators.OUR
 search stuck at an edge, and the smallest gain error where the issue asks for it. Values are
 point estimates over the seeds run; the Wilson interval of each coverage is beside it, and a
 spread of z names the joints (or counts the parameters) whose 95 % interval lies wholly
-outside the target: with 30-40 seeds a spread estimate is uncertain by about ±25 %, so a
-verdict on the point estimate alone cannot tell a wrong σ from sampling error.
+outside the target: from N seeds a spread estimate is uncertain by about ±1.96/√(2(N − 1))
+(±25 % at 30 seeds, ±14 % at 100), so a verdict on the point estimate alone cannot tell a
+wrong σ from sampling error.
 """
 
 from __future__ import annotations
@@ -212,8 +213,9 @@ def must_show_text(checks: Sequence[dict[str, Any]]) -> str:
         "±2σ, pooled over joints (or payload parameters of both payloads) and seeds, with its "
         "95 % Wilson interval; z = (estimate − truth)/σ̂ per joint; the verdict on a spread of "
         "z is its point estimate's, and the joints (or the count of payload parameters) whose "
-        "95 % χ² interval misses 0.9-1.1 as well are named: with 30-40 seeds a spread is "
-        "uncertain by about ±25 %, so only those are σ shown wrong; edge: seeds whose searched "
+        "95 % χ² interval misses 0.9-1.1 as well are named: from N seeds a spread is "
+        "uncertain by about ±1.96/√(2(N − 1)) (±25 % at 30 seeds, ±14 % at 100), so only those "
+        "are σ shown wrong; edge: seeds whose searched "
         "weight or α ended at an end of its range; RMS: relative gain error per joint against "
         "the other methods (point estimates; the paired intervals are in the gain tables).",
         "",

@@ -74,7 +74,7 @@ class Scenario:
 
 
 #: Seeds of the costly new scenarios (random excitations, closed loop) in the full study.
-EXTENDED_SEEDS = 30
+EXTENDED_SEEDS = 100
 #: Current-loop error of the closed-loop drives, N·m per internal step (the simulated cell's
 #: default ``current_noise_nm``, drivers/simconfig.py).
 LOOP_NOISE_NM = 0.5
