@@ -81,6 +81,15 @@ def read_bytes(location: str) -> bytes:
         return bytes(fh.read())
 
 
+#: Ending of the temporary names :func:`write_atomic` writes under (``.NAME.HEX.part``).
+PART_SUFFIX = ".part"
+
+
+def _is_part(name: str) -> bool:
+    """Whether ``name`` is one :func:`write_atomic` gives its temporary files."""
+    return name.startswith(".") and name.endswith(PART_SUFFIX)
+
+
 def write_atomic(location: str, data: bytes) -> None:
     """Write ``data`` to ``location``: under a temporary name, then moved onto the final name.
 
@@ -91,7 +100,7 @@ def write_atomic(location: str, data: bytes) -> None:
     folder = posixpath.dirname(path)
     if folder:
         fs.makedirs(folder, exist_ok=True)
-    tmp = posixpath.join(folder, f".{posixpath.basename(path)}.{uuid.uuid4().hex}.part")
+    tmp = posixpath.join(folder, f".{posixpath.basename(path)}.{uuid.uuid4().hex}{PART_SUFFIX}")
     try:
         with fs.open(tmp, "wb") as fh:
             fh.write(data)
@@ -112,11 +121,7 @@ def remove_stale_parts(location: str) -> list[str]:
     fs, path = filesystem(location)
     if not fs.exists(path):
         return []
-    stale = [
-        p
-        for p in fs.find(path)
-        if posixpath.basename(p).startswith(".") and posixpath.basename(p).endswith(".part")
-    ]
+    stale = [p for p in fs.find(path) if _is_part(posixpath.basename(p))]
     for p in stale:
         fs.rm(p)
     return stale

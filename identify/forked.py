@@ -17,7 +17,7 @@ from __future__ import annotations
 import multiprocessing
 import os
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from multiprocessing.connection import Connection
 from typing import Any, Generic, TypeVar
 
@@ -25,6 +25,7 @@ from drivegain.errors import IdentificationError
 from drivegain.identify.blas import limited_blas_threads
 
 T = TypeVar("T")
+U = TypeVar("U")
 
 
 def fork_is_safe() -> bool:
@@ -140,3 +141,21 @@ def start(what: str, fn: Callable[[], T], *, parallel: bool) -> Pending[T]:
         The caller's judgement that the work is large enough to pay for a fork (tens of ms).
     """
     return Pending(what, fn, fork=parallel and two_cpus() and fork_is_safe())
+
+
+def map_items(what: str, fn: Callable[[U], T], items: Sequence[U], *, parallel: bool) -> list[T]:
+    """``[fn(x) for x in items]``, the first item in a forked child (:func:`start`) while the
+    others run here, in turn; the child is ended if the work here fails.
+
+    For the same work on each of a few long runs: on two cores the list takes the time of the
+    longest item instead of the sum. Results are in ``items``' order either way.
+    """
+    if not items:
+        return []
+    first = start(what, lambda: fn(items[0]), parallel=parallel and len(items) > 1)
+    try:
+        rest = [fn(x) for x in items[1:]]
+    except BaseException:
+        first.cancel()
+        raise
+    return [first.result(), *rest]

@@ -335,11 +335,13 @@ def ml_fit(
     def residuals(th: np.ndarray) -> list[np.ndarray]:
         return [r.v - predict(th, r, kt_inv)[0] for r in runs]
 
-    def noise(th: np.ndarray, kappa: np.ndarray) -> Whitening:
-        # Σ̂ of the scaled residuals, from the reduced runs. Its diagonal is floored at the
-        # round-off variance: with exact (noise-free) data Σ̂ stays invertible and settles, and
-        # a real estimate is not changed.
-        gram = mlreduce.residual_gram(reduced, th, nb, kt_inv)
+    def gram_at(th: np.ndarray) -> np.ndarray:
+        return mlreduce.residual_gram(reduced, th, nb, kt_inv)
+
+    def noise(gram: np.ndarray, kappa: np.ndarray) -> Whitening:
+        # Σ̂ of the scaled residuals from their Gram Σ_k ε_k ε_kᵀ. Its diagonal is floored at
+        # the round-off variance: with exact (noise-free) data Σ̂ stays invertible and settles,
+        # and a real estimate is not changed.
         return Whitening(np.asarray(gram / samples + np.diag(floor)), kappa)
 
     converged = False
@@ -348,7 +350,8 @@ def ml_fit(
     floor = _round_off(np.mean(np.vstack([r.v for r in runs]) ** 2, axis=0))
     # Each step works on the runs reduced once per κ (:mod:`.mlreduce`), not on the samples.
     reduced = _reduce(runs, kt_inv, np.zeros(n), parallel)
-    whiten = noise(theta, np.zeros(n))
+    gram = gram_at(theta)  # of the runs as reduced, at θ
+    whiten = noise(gram, np.zeros(n))
     # κ is estimated once, from the residuals of the fit with κ = 0 once it has (nearly)
     # settled, and then held: re-estimated with θ, it would feed on itself (entries that count
     # less are fitted less, their residuals grow, κ grows) and drift towards dropping them.
@@ -372,12 +375,13 @@ def ml_fit(
         while lam > 1e-6:
             trial = theta + lam * delta
             if np.all(trial[nb : nb + n] != 0.0):
-                if mlreduce.whitened_sq(reduced, trial, nb, kt_inv, whiten) <= before:
-                    theta = trial
+                tried = gram_at(trial)
+                if mlreduce.whitened_sq(tried, whiten) <= before:
+                    theta, gram = trial, tried
                     break
             lam *= 0.5
         # else: no decrease along the step (round-off at the optimum): θ stays
-        new = noise(theta, whiten.kappa)
+        new = noise(gram, whiten.kappa)
         change = float(np.max(np.abs(np.diag(new.noise) / np.diag(whiten.noise) - 1.0)))
         whiten = new
         still = step_sq < DECREMENT_TOL or lam <= 1e-6
@@ -387,7 +391,8 @@ def ml_fit(
             del resid
             if np.any(kappa != 0.0):
                 reduced = _reduce(runs, kt_inv, kappa, parallel)
-            whiten = noise(theta, kappa)
+                gram = gram_at(theta)
+            whiten = noise(gram, kappa)
             kappa_due = False
             continue
         if still and change < NOISE_TOL and not kappa_due:
@@ -416,17 +421,12 @@ def ml_fit(
     # less than 1e-5 σ since; an error in it only touches the correction for the fit, see
     # LaggedSums): one pass over the blocks, the first run's in a forked child meanwhile.
     h_inv = np.linalg.pinv(last_r.T @ last_r, hermitian=True)
-    first = forked.start(
+    sums, *rest = forked.map_items(
         "maximum-likelihood covariance",
-        lambda: _run_sums(theta, runs[0], kt_inv, whiten, h_inv, lag),
-        parallel=parallel and len(runs) > 1,
+        lambda r: _run_sums(theta, r, kt_inv, whiten, h_inv, lag),
+        runs,
+        parallel=parallel,
     )
-    try:
-        rest = [_run_sums(theta, r, kt_inv, whiten, h_inv, lag) for r in runs[1:]]
-    except BaseException:
-        first.cancel()
-        raise
-    sums = first.result()
     for other in rest:
         sums.merge(other)
     cov, autocov = sums.covariance()
@@ -472,18 +472,13 @@ def _reduce(
     runs: Sequence[RunArrays], kt_inv: np.ndarray, kappa: np.ndarray, parallel: bool = False
 ) -> list[mlreduce.ReducedRun]:
     """Every run reduced at ``kappa`` (:func:`.mlreduce.reduce_run`); with ``parallel`` the
-    first run in a forked child (:mod:`.forked`) meanwhile, with the same result."""
-    first = forked.start(
+    first run in a forked child (:func:`.forked.map_items`) meanwhile, with the same result."""
+    return forked.map_items(
         "maximum-likelihood reduction",
-        lambda: mlreduce.reduce_run(runs[0], kt_inv, kappa),
-        parallel=parallel and len(runs) > 1,
+        lambda r: mlreduce.reduce_run(r, kt_inv, kappa),
+        runs,
+        parallel=parallel,
     )
-    try:
-        rest = [mlreduce.reduce_run(r, kt_inv, kappa) for r in runs[1:]]
-    except BaseException:
-        first.cancel()
-        raise
-    return [first.result(), *rest]
 
 
 def _whitened_residuals(

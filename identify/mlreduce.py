@@ -195,11 +195,9 @@ def residual_gram(
     return out
 
 
-def whitened_sq(
-    reduced: Sequence[ReducedRun], theta: np.ndarray, nb: int, kt_inv: np.ndarray, whiten: Whitening
-) -> float:
-    """Σ_k ‖ẽ_k‖² over the runs at ``theta`` (the runs reduced at ``whiten.kappa``)."""
-    gram = residual_gram(reduced, theta, nb, kt_inv)
+def whitened_sq(gram: np.ndarray, whiten: Whitening) -> float:
+    """Σ_k ‖ẽ_k‖² = tr(L⁻¹ G L⁻ᵀ) from ``gram`` G, :func:`residual_gram` of runs reduced at
+    ``whiten.kappa``."""
     return float(np.sum(whiten.matrix @ gram * whiten.matrix))
 
 

@@ -31,7 +31,7 @@ from drivegain.identify.compare import (
 )
 from drivegain.identify.design import Design, make_design
 from drivegain.identify.gains import DEFAULT_ALPHA_GRID, Estimator, estimate_gains
-from drivegain.identify.hac import LongRunSum, bartlett_lag, sandwich
+from drivegain.identify.hac import bartlett_lag, long_run_covariance, sandwich
 from drivegain.identify.mlmodel import Whitening, run_arrays, scores, whitened_block
 from drivegain.validation.cell import closed_loop_three
 from drivegain.validation.scenarios import (
@@ -127,18 +127,16 @@ def _ours_newey_west(a: Design, b: Design, w: World) -> GainEstimate:
     kt_inv = np.linalg.inv(np.asarray(a.kt, float))
     whiten = Whitening(fit.noise, fit.kappa)
     blocks = [whitened_block(theta, run_arrays(d, w.payload), kt_inv, whiten) for d in (a, b)]
-    meat = LongRunSum(theta.size, bartlett_lag([ew for _, ew in blocks]))
-    for jw, ew in blocks:
-        meat.add(scores(jw, ew))
-        meat.end_run()
-    cov = sandwich(fit.hessian, meat.meat(), fit.rows, theta.size)
+    lag = bartlett_lag([ew for _, ew in blocks])
+    meat = long_run_covariance([scores(jw, ew) for jw, ew in blocks], lag)
+    cov = sandwich(fit.hessian, meat, fit.rows, theta.size)
     g = slice(a.nb, a.nb + a.n)
     return GainEstimate(
         method="ML",
         gains=fit.gains,
         std=np.sqrt(np.diag(cov)[g]),
         coupled=True,
-        details={"lag": float(meat.lag)},
+        details={"lag": float(lag)},
         gain_cov=cov[g, g],
     )
 

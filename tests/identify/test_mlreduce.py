@@ -82,7 +82,9 @@ def test_reduced_quantities_equal_the_sample_by_sample_ones(setting, monkeypatch
     scale = np.abs(gram).max()
     np.testing.assert_allclose(r_aug.T @ r_aug / scale, gram / scale, rtol=0, atol=1e-11)
     np.testing.assert_allclose(
-        mlreduce.whitened_sq(reduced, theta, nb, kt_inv, whiten), gram[-1, -1], rtol=1e-10
+        mlreduce.whitened_sq(mlreduce.residual_gram(reduced, theta, nb, kt_inv), whiten),
+        gram[-1, -1],
+        rtol=1e-10,
     )
     ref = eps.T @ eps
     np.testing.assert_allclose(
