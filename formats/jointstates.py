@@ -140,6 +140,22 @@ class JointStateParser:
         self.columns.extend(columns, len(datas))
         self.index += len(datas)
 
+    def add_columns(self, columns: dict[str, np.ndarray]) -> None:
+        """Store a block of rows read from ``/joint_states/columns`` (:mod:`.columns`).
+
+        Raises
+        ------
+        ValueError
+            The block's joint count differs from the rows stored before it.
+        """
+        k, n = columns["position"].shape
+        if self.columns is None:
+            self.columns = _Columns(n, self.capacity)
+        elif n != self.columns.n:
+            raise ValueError(f"column block of {n} joints after blocks of {self.columns.n}")
+        self.columns.extend(columns, k)
+        self.index += k
+
     def _fast(self, datas: list[bytes], log_times: list[int]) -> dict[str, np.ndarray] | None:
         """The batch as columns, or None when any message needs the checking decoder."""
         k = len(datas)

@@ -33,6 +33,8 @@ EVENTS = "/events"
 #: the ROS 2 ``sensor_msgs/msg/JointState`` (CDR) twin of ``/joint_states``; its own topic, since
 #: ``/joint_states`` is the contract's JSON channel
 ROS2_JOINT_STATES = "/ros2/joint_states"
+#: the rows of ``/joint_states`` again, in blocks of arrays, for fast reading (:mod:`.columns`)
+JOINT_STATE_COLUMNS = "/joint_states/columns"
 METADATA_NAME = "drivegain.run"
 #: keys every ``drivegain.run`` metadata record must hold
 REQUIRED_KEYS = (

@@ -10,6 +10,7 @@ into preallocated arrays, so memory stays at about the size of the arrays return
 from __future__ import annotations
 
 import json
+import logging
 import math
 import os
 from collections.abc import Iterator
@@ -24,10 +25,12 @@ from mcap.records import Attachment, Channel, Footer, Metadata
 
 from drivegain.errors import DataError
 from drivegain.fileio import reading
+from drivegain.formats.columns import ColumnCheck, decode_block
 from drivegain.formats.jointstates import BATCH, JointStateParser
 from drivegain.formats.log import (
     EVENTS,
     FORMAT_VERSION,
+    JOINT_STATE_COLUMNS,
     JOINT_STATES,
     METADATA_NAME,
     REQUIRED_KEYS,
@@ -38,7 +41,12 @@ from drivegain.formats.mcapscan import FILLED, Buckets, records
 
 _MCAP_MAGIC = b"\x89MCAP0\r\n"
 # Channel kinds collected while reading (mcapscan buckets).
-_JS, _EV = 1, 2
+_JS, _EV, _COL = 1, 2, 3
+_log = logging.getLogger(__name__)
+
+
+class _ColumnsUnusable(Exception):
+    """The ``/joint_states/columns`` blocks cannot stand for the JSON messages (why)."""
 
 
 @dataclass
@@ -110,8 +118,8 @@ class RunLog:
         return int(self.cycle[-1] - self.cycle[0] + 1 - self.cycle.size)
 
 
-def _listed_messages(fh: IO[bytes], size: int) -> int | None:
-    """Number of ``/joint_states`` messages in a finished file's statistics, else None."""
+def _listed_messages(fh: IO[bytes], size: int) -> dict[str, int] | None:
+    """Message counts per topic in a finished file's statistics, else None."""
     if not _finished(fh, size):
         return None  # no closing magic: cut file, no summary
     try:
@@ -122,9 +130,11 @@ def _listed_messages(fh: IO[bytes], size: int) -> int | None:
         fh.seek(0)
     if summary is None or summary.statistics is None:
         return None
-    ids = [c.id for c in summary.channels.values() if c.topic == JOINT_STATES]
     counts = summary.statistics.channel_message_counts
-    return sum(counts.get(i, 0) for i in ids)
+    listed: dict[str, int] = {}
+    for c in summary.channels.values():
+        listed[c.topic] = listed.get(c.topic, 0) + counts.get(c.id, 0)
+    return listed
 
 
 def _finished(fh: IO[bytes], size: int) -> bool:
@@ -173,24 +183,49 @@ def read_run(path: str | Path, n_joints: int | None = None) -> RunLog:
         if fh.read(len(_MCAP_MAGIC)) != _MCAP_MAGIC:
             raise DataError("not an MCAP file (bad magic bytes)", file=p)
         fh.seek(0)
-        return _read_stream(fh, size, p, n_joints)
+        try:
+            return _read_stream(fh, size, p, n_joints, columns=True)
+        except _ColumnsUnusable as exc:
+            # The JSON messages are the contract: read them (a second pass, for a file another
+            # program changed after drivegain wrote it).
+            _log.warning(
+                "%s: %s disagrees with %s (%s); reading the JSON messages",
+                p,
+                JOINT_STATE_COLUMNS,
+                JOINT_STATES,
+                exc,
+            )
+            return _read_stream(fh, size, p, n_joints, columns=False)
 
 
-def _read_stream(fh: IO[bytes], size: int, p: Path, n_joints: int | None) -> RunLog:
+def _read_stream(
+    fh: IO[bytes], size: int, p: Path, n_joints: int | None, *, columns: bool
+) -> RunLog:
     finished = _finished(fh, size)
-    listed = _listed_messages(fh, size)
+    counts = _listed_messages(fh, size)
+    listed = None if counts is None else counts.get(JOINT_STATES, 0)
     # A message takes more than 16 bytes even compressed: a larger count is not to be trusted.
     capacity = None if listed is None else (min(listed, size // 16) or None)
     parser = JointStateParser(p, capacity)
+    # A finished file with blocks on the side channel is read from them (formats/columns.py);
+    # the JSON messages are then only checked against them, not decoded.
+    check = (
+        ColumnCheck(capacity)
+        if columns and capacity and counts and counts.get(JOINT_STATE_COLUMNS, 0) > 0
+        else None
+    )
     meta: dict[str, str] | None = None
     attachments: dict[str, bytes] = {}
     channels: dict[int, Channel] = {}
     footer = False
-    buckets: Buckets = {_JS: ([], []), _EV: ([], [])}
+    buckets: Buckets = {_JS: ([], []), _EV: ([], []), _COL: ([], [])}
     states = buckets[_JS]
-    for record in records(fh, size, p, finished, partial(_classify, p), buckets):
+    classify = partial(_classify, p, check is not None)
+    for record in records(fh, size, p, finished, classify, buckets):
         if record is FILLED:
-            if len(states[0]) >= BATCH:
+            if check is not None:
+                _take_blocks(check, parser, states, buckets[_COL])
+            elif len(states[0]) >= BATCH:
                 parser.add_batch(states[0], states[1])
                 states[0].clear()
                 states[1].clear()
@@ -203,7 +238,14 @@ def _read_stream(fh: IO[bytes], size: int, p: Path, n_joints: int | None) -> Run
             attachments[record.name] = bytes(record.data)
         elif isinstance(record, Footer):
             footer = True
-    parser.add_batch(states[0], states[1])
+    fast: dict[str, np.ndarray] | None = None
+    if check is None:
+        parser.add_batch(states[0], states[1])
+    else:
+        fast = parser.columns.arrays() if parser.columns is not None else {}
+        why = check.disagreement(fast)
+        if why is not None:
+            raise _ColumnsUnusable(why)
     events = [_event(data, log_time) for data, log_time in zip(*buckets[_EV], strict=True)]
     truncated = not footer
     if finished and truncated:
@@ -261,7 +303,7 @@ def _read_stream(fh: IO[bytes], size: int, p: Path, n_joints: int | None) -> Run
             "the file is corrupt",
             file=p,
         )
-    arrays = cols.arrays()
+    arrays = cols.arrays() if fast is None else fast
     _order_by_log_time(arrays)
     _check_monotonic(arrays, p)
     _check_finite(arrays, joint_names, p)
@@ -284,8 +326,27 @@ def _read_stream(fh: IO[bytes], size: int, p: Path, n_joints: int | None) -> Run
     )
 
 
-def _classify(p: Path, channel: Channel) -> int | None:
-    """The bucket a channel's messages go to (None: not read)."""
+def _take_blocks(
+    check: ColumnCheck,
+    parser: JointStateParser,
+    states: tuple[list[bytes], list[int]],
+    blocks: tuple[list[bytes], list[int]],
+) -> None:
+    """Note the JSON messages read so far in ``check`` and store the blocks' rows."""
+    try:
+        check.add(states[0], states[1])
+        for data in blocks[0]:
+            parser.add_columns(decode_block(data))
+    except ValueError as exc:
+        raise _ColumnsUnusable(str(exc)) from None
+    for bucket in (states, blocks):
+        bucket[0].clear()
+        bucket[1].clear()
+
+
+def _classify(p: Path, columns: bool, channel: Channel) -> int | None:
+    """The bucket a channel's messages go to (None: not read); ``columns``: whether the
+    ``/joint_states/columns`` blocks are read."""
     if channel.topic == JOINT_STATES:
         if channel.message_encoding != "json":
             raise DataError(
@@ -296,6 +357,8 @@ def _classify(p: Path, channel: Channel) -> int | None:
         return _JS
     if channel.topic == EVENTS and channel.message_encoding == "json":
         return _EV
+    if columns and channel.topic == JOINT_STATE_COLUMNS and channel.message_encoding == "msgpack":
+        return _COL
     return None
 
 

@@ -23,10 +23,12 @@ from mcap.writer import CompressionType, Writer
 from drivegain import __version__
 from drivegain.errors import DataError, UsageError
 from drivegain.fileio import fsync_dir
+from drivegain.formats.columns import ColumnBuffer
 from drivegain.formats.log import (
     DEFAULT_CHUNK_SIZE,
     EVENT_SCHEMA,
     EVENTS,
+    JOINT_STATE_COLUMNS,
     JOINT_STATES,
     METADATA_NAME,
     RAW,
@@ -142,9 +144,18 @@ class LogWriter:
                 else "empty: the log does not know the drive gains",
             },
         )
+        # schema id 0: MessagePack maps describe themselves (formats/columns.py has the layout)
+        self._columns = self._writer.register_channel(
+            JOINT_STATE_COLUMNS,
+            "msgpack",
+            0,
+            metadata={"twin_of": JOINT_STATES, "layout": "drivegain.formats.columns version 1"},
+        )
+        self._column_buffer = ColumnBuffer(self._n)
         self._names = list(meta.joint_names)
         self._sequence = {
             self._joint_states: 0,
+            self._columns: 0,
             self._raw: 0,
             self._events: 0,
             self._ros2_joint_states: 0,
@@ -200,9 +211,10 @@ class LogWriter:
         """
         n = self._n
         nulls: list[float | None] = [None] * n
+        cycle, t = int(cycle), float(t)
         msg = {
-            "cycle": int(cycle),
-            "t": float(t),
+            "cycle": cycle,
+            "t": t,
             "position": _vector(position, n, "position"),
             "current_reference": _vector(current_reference, n, "current_reference"),
             "current": nulls if current is None else _vector(current, n, "current"),
@@ -210,6 +222,20 @@ class LogWriter:
             "name": self._names,
         }
         self._add(self._joint_states, log_time_ns, _json_bytes(msg))
+        buffer = self._column_buffer
+        buffer.append(
+            cycle,
+            t,
+            log_time_ns,
+            {
+                "position": position,
+                "current_reference": current_reference,
+                "current": current,
+                "setpoint": setpoint,
+            },
+        )
+        if buffer.full:
+            self._write_columns()
         # NaN stays NaN in CDR (float64), where JSON has null
         self._add(
             self._ros2_joint_states,
@@ -220,6 +246,12 @@ class LogWriter:
                 np.asarray(current_reference, dtype=float),
             ),
         )
+
+    def _write_columns(self) -> None:
+        """Write the rows buffered since the last block to ``/joint_states/columns``."""
+        buffer = self._column_buffer
+        if buffer.used:
+            self._add(self._columns, buffer.last_log_time_ns, buffer.take())
 
     def write_raw(self, *, cycle: int, log_time_ns: int, raw: Mapping[str, Any]) -> None:
         """Append the raw drive values of one cycle to ``/drives/raw`` (JSON-serialisable)."""
@@ -255,6 +287,7 @@ class LogWriter:
         """
         if self._done:
             return
+        self._write_columns()
         self._writer.flush()
         self._file.flush()
         os.fsync(self._file.fileno())
@@ -271,6 +304,7 @@ class LogWriter:
             if self.part_path.exists():
                 raise UsageError(f"{self.part_path}: log was closed unfinished")
             return self.path
+        self._write_columns()
         self._writer.finish()
         self._file.flush()
         os.fsync(self._file.fileno())

@@ -6,6 +6,8 @@ import json
 from collections.abc import Callable
 from pathlib import Path
 
+import msgspec
+import numpy as np
 import pytest
 from mcap.reader import make_reader
 
@@ -14,7 +16,14 @@ from drivegain.acquire.foreground import run_foreground
 from drivegain.acquire.recorder import typed_fields
 from drivegain.acquire.session import RunRequest
 from drivegain.drivers.exchange import RAW_FIELDS
-from drivegain.formats.log import EVENTS, JOINT_STATES, RAW, RAW_FIELD_DOCS, ROS2_JOINT_STATES
+from drivegain.formats.log import (
+    EVENTS,
+    JOINT_STATE_COLUMNS,
+    JOINT_STATES,
+    RAW,
+    RAW_FIELD_DOCS,
+    ROS2_JOINT_STATES,
+)
 
 jsonschema = pytest.importorskip("jsonschema", reason="jsonschema (test extra) absent")
 mcap_ros2_decoder = pytest.importorskip("mcap_ros2.decoder", reason="mcap-ros2-support absent")
@@ -55,6 +64,12 @@ def test_acquired_log_follows_its_schemas(
     with open(out, "rb") as fh:
         reader = make_reader(fh)
         for schema, channel, message in reader.iter_messages(log_time_order=False):
+            if channel.message_encoding == "msgpack":  # self-describing: no schema
+                assert schema is None
+                by_topic.setdefault(channel.topic, []).append(
+                    (message.log_time, message.sequence, msgspec.msgpack.decode(message.data))
+                )
+                continue
             assert schema is not None
             if channel.message_encoding == "json":
                 schemas[channel.topic] = json.loads(schema.data)
@@ -64,7 +79,7 @@ def test_acquired_log_follows_its_schemas(
                 assert decoder is not None
                 obj = decoder(message.data)
             by_topic.setdefault(channel.topic, []).append((message.log_time, message.sequence, obj))
-    assert set(by_topic) == {JOINT_STATES, RAW, EVENTS, ROS2_JOINT_STATES}
+    assert set(by_topic) == {JOINT_STATES, RAW, EVENTS, ROS2_JOINT_STATES, JOINT_STATE_COLUMNS}
     for topic in (JOINT_STATES, RAW, EVENTS):
         validator = jsonschema.Draft202012Validator(schemas[topic])
         validator.check_schema(schemas[topic])
@@ -82,6 +97,20 @@ def test_acquired_log_follows_its_schemas(
     for (lt_j, _, obj), (lt_r, _, msg) in zip(js, ros, strict=True):
         assert lt_j == lt_r and obj["name"] == names and list(msg.name) == names  # type: ignore[attr-defined,index]
         assert list(msg.position) == obj["position"]  # type: ignore[attr-defined,index]
+
+    # the side channel holds the same rows, decoded here with a generic MessagePack reader
+    blocks = [b for _, _, b in by_topic[JOINT_STATE_COLUMNS]]
+    assert all(b["version"] == 1 and b["joints"] == 6 for b in blocks)  # type: ignore[index]
+    for name, shape in (("cycle", ()), ("t", ()), ("position", (6,)), ("current", (6,))):
+        dtype = "<i8" if name == "cycle" else "<f8"
+        rows = np.concatenate(
+            [np.frombuffer(b[name], dtype).reshape(b["rows"], *shape) for b in blocks]  # type: ignore[index]
+        )
+        expected = np.array(
+            [np.nan if v is None else v for _, _, o in js for v in np.ravel(o[name])],  # type: ignore[index]
+            dtype=dtype,
+        ).reshape(len(js), *shape)
+        assert np.array_equal(rows, expected, equal_nan=True), name
 
     events = by_topic[EVENTS]
     # events of one log time in the order of their sequence numbers (file order)

@@ -18,7 +18,15 @@ from mcap.writer import CompressionType, Writer
 
 from drivegain.config import resource_path
 from drivegain.errors import DataError
-from drivegain.formats.log import EVENTS, JOINT_STATES, RAW, ROS2_JOINT_STATES, RunMetadata
+from drivegain.formats.columns import BLOCK_ROWS
+from drivegain.formats.log import (
+    EVENTS,
+    JOINT_STATE_COLUMNS,
+    JOINT_STATES,
+    RAW,
+    ROS2_JOINT_STATES,
+    RunMetadata,
+)
 from drivegain.formats.logreader import read_run
 from drivegain.formats.logwriter import LogWriter, write_run
 
@@ -112,15 +120,20 @@ def test_writer_output_read_by_mcap_library(tmp_path: Path) -> None:
         reader = make_reader(fh)
         summary = reader.get_summary()
         assert summary is not None and summary.statistics is not None
-        # /joint_states, /drives/raw and the ROS 2 twin of /joint_states per cycle, one event
-        assert summary.statistics.message_count == 3 * 20_000 + 1
+        # /joint_states, /drives/raw and the ROS 2 twin of /joint_states per cycle, one event,
+        # and the rows again in blocks of BLOCK_ROWS on /joint_states/columns
+        blocks = -(-20_000 // BLOCK_ROWS)
+        assert summary.statistics.message_count == 3 * 20_000 + 1 + blocks
         assert summary.statistics.attachment_count == 2
         assert {c.compression for c in summary.chunk_indexes} == {"zstd"}
         assert len(summary.chunk_indexes) > 1  # about 4.5 MB of JSON in 1 MiB chunks
-        assert max(c.uncompressed_size for c in summary.chunk_indexes) < (1 << 20) + 4096
+        # a chunk is closed by the message that fills it: at most one column block (55 kB) over
+        assert max(c.uncompressed_size for c in summary.chunk_indexes) < (1 << 20) + 64 * 1024
         topics = {c.topic: c for c in summary.channels.values()}
-        assert set(topics) == {JOINT_STATES, RAW, EVENTS, ROS2_JOINT_STATES}
+        assert set(topics) == {JOINT_STATES, RAW, EVENTS, ROS2_JOINT_STATES, JOINT_STATE_COLUMNS}
         assert topics.pop(ROS2_JOINT_STATES).message_encoding == "cdr"
+        columns = topics.pop(JOINT_STATE_COLUMNS)
+        assert (columns.message_encoding, columns.schema_id) == ("msgpack", 0)
         for c in topics.values():
             assert c.message_encoding == "json"
             assert summary.schemas[c.schema_id].encoding == "jsonschema"
