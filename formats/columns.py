@@ -17,6 +17,7 @@ in the JSON message (not measured, or not finite) is NaN here, as the JSON reade
 from __future__ import annotations
 
 import json
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import msgspec
@@ -179,21 +180,22 @@ class ColumnCheck:
         self.count = 0
         self.spots: dict[int, bytes] = {}
 
-    def add(self, datas: list[bytes], log_times: list[int]) -> None:
-        """Note a batch of ``/joint_states`` messages (data and log times, ns), in file order.
+    def add(self, log_times: Sequence[int] | np.ndarray, data_of: Callable[[int], bytes]) -> None:
+        """Note a batch of ``/joint_states`` messages in file order: their log times, ns, and
+        ``data_of(i)``, the data of the batch's ``i``-th message (called for a few of them).
 
         Raises
         ------
         ValueError
-            More messages than the statistics list.
+            More messages than the statistics list, or from ``data_of``.
         """
-        start, k = self.count, len(datas)
+        start, k = self.count, len(log_times)
         if start + k > self.log_times.size:
             raise ValueError(f"more than the {self.log_times.size} messages listed")
         self.log_times[start : start + k] = log_times
         first = -(-start // SPOT_EVERY) * SPOT_EVERY
         for i in range(first, start + k, SPOT_EVERY):
-            self.spots[i] = datas[i - start]
+            self.spots[i] = data_of(i - start)
         self.count = start + k
 
     def disagreement(self, arrays: dict[str, np.ndarray]) -> str | None:

@@ -37,7 +37,7 @@ from drivegain.formats.log import (
     REQUIRED_VECTORS,
     VECTOR_FIELDS,
 )
-from drivegain.formats.mcapscan import FILLED, Buckets, records
+from drivegain.formats.mcapscan import FILLED, Buckets, IndexedChunk, records
 
 _MCAP_MAGIC = b"\x89MCAP0\r\n"
 # Channel kinds collected while reading (mcapscan buckets).
@@ -118,8 +118,18 @@ class RunLog:
         return int(self.cycle[-1] - self.cycle[0] + 1 - self.cycle.size)
 
 
-def _listed_messages(fh: IO[bytes], size: int) -> dict[str, int] | None:
-    """Message counts per topic in a finished file's statistics, else None."""
+@dataclass(frozen=True)
+class _Listing:
+    """What a finished file's summary says: message counts per topic, the channels, and
+    whether every chunk has message indexes."""
+
+    counts: dict[str, int]
+    channels: list[Channel]
+    indexed: bool
+
+
+def _listed_messages(fh: IO[bytes], size: int) -> _Listing | None:
+    """What a finished file's summary lists, else None."""
     if not _finished(fh, size):
         return None  # no closing magic: cut file, no summary
     try:
@@ -134,7 +144,9 @@ def _listed_messages(fh: IO[bytes], size: int) -> dict[str, int] | None:
     listed: dict[str, int] = {}
     for c in summary.channels.values():
         listed[c.topic] = listed.get(c.topic, 0) + counts.get(c.id, 0)
-    return listed
+    chunks = summary.chunk_indexes
+    indexed = bool(chunks) and all(c.message_index_length > 0 for c in chunks)
+    return _Listing(listed, list(summary.channels.values()), indexed)
 
 
 def _finished(fh: IO[bytes], size: int) -> bool:
@@ -202,7 +214,8 @@ def _read_stream(
     fh: IO[bytes], size: int, p: Path, n_joints: int | None, *, columns: bool
 ) -> RunLog:
     finished = _finished(fh, size)
-    counts = _listed_messages(fh, size)
+    listing = _listed_messages(fh, size)
+    counts = None if listing is None else listing.counts
     listed = None if counts is None else counts.get(JOINT_STATES, 0)
     # A message takes more than 16 bytes even compressed: a larger count is not to be trusted.
     capacity = None if listed is None else (min(listed, size // 16) or None)
@@ -221,8 +234,16 @@ def _read_stream(
     buckets: Buckets = {_JS: ([], []), _EV: ([], []), _COL: ([], [])}
     states = buckets[_JS]
     classify = partial(_classify, p, check is not None)
-    for record in records(fh, size, p, finished, classify, buckets):
-        if record is FILLED:
+    indexed = None
+    if check is not None and listing is not None and listing.indexed:
+        # chunks are then read through their message indexes: no loop over every message
+        kinds = {c.id: classify(c) for c in listing.channels}
+        indexed = {i: kind for i, kind in kinds.items() if kind is not None}
+    for record in records(fh, size, p, finished, classify, buckets, indexed):
+        if isinstance(record, IndexedChunk):
+            assert check is not None
+            _take_chunk(check, parser, record, buckets[_EV])
+        elif record is FILLED:
             if check is not None:
                 _take_blocks(check, parser, states, buckets[_COL])
             elif len(states[0]) >= BATCH:
@@ -334,7 +355,7 @@ def _take_blocks(
 ) -> None:
     """Note the JSON messages read so far in ``check`` and store the blocks' rows."""
     try:
-        check.add(states[0], states[1])
+        check.add(states[1], states[0].__getitem__)
         for data in blocks[0]:
             parser.add_columns(decode_block(data))
     except ValueError as exc:
@@ -342,6 +363,26 @@ def _take_blocks(
     for bucket in (states, blocks):
         bucket[0].clear()
         bucket[1].clear()
+
+
+def _take_chunk(
+    check: ColumnCheck,
+    parser: JointStateParser,
+    chunk: IndexedChunk,
+    events: tuple[list[bytes], list[int]],
+) -> None:
+    """Note a chunk's JSON messages in ``check``, store its blocks' rows, keep its events."""
+    try:
+        js = chunk.entries.get(_JS)
+        if js is not None:
+            check.add(js[:, 0], lambda i: chunk.message(int(js[i, 1]), int(js[i, 0])))
+        for log_time, offset in chunk.entries.get(_COL, ()):
+            parser.add_columns(decode_block(chunk.message(int(offset), int(log_time))))
+        for log_time, offset in chunk.entries.get(_EV, ()):
+            events[0].append(chunk.message(int(offset), int(log_time)))
+            events[1].append(int(log_time))
+    except ValueError as exc:
+        raise _ColumnsUnusable(str(exc)) from None
 
 
 def _classify(p: Path, columns: bool, channel: Channel) -> int | None:

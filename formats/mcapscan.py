@@ -5,6 +5,9 @@ index entry included; for a 1 kHz log that is most of the reading time. This mod
 records itself: chunks are decompressed whole and their message records are cut out with one
 ``struct`` call each, message indexes and other summary records are skipped unread, and only
 the rare records (channels, metadata, attachments, footer) are parsed by ``mcap``'s own classes.
+A finished file whose chunks all have message indexes can also be read through them
+(``indexed``): a chunk's message positions and log times are then one array per channel, and
+only the messages wanted are cut out.
 CRCs are checked as the ``mcap`` reader does with ``validate_crcs=True``: the uncompressed CRC
 of each chunk and the data-section CRC in the DataEnd record.
 
@@ -24,6 +27,7 @@ from io import BytesIO
 from pathlib import Path
 from typing import IO, Any
 
+import numpy as np
 from mcap.data_stream import ReadDataStream
 from mcap.records import Attachment, Channel, Footer, Metadata
 
@@ -36,6 +40,7 @@ RECORD_SIZE_LIMIT = 4 * 2**30
 _RECORD_HEADER = struct.Struct("<BQ")
 _MESSAGE_HEADER = struct.Struct("<HIQQ")  # channel id, sequence, log time, publish time
 _CHUNK_HEADER = struct.Struct("<QQQI")  # start, end, uncompressed size, uncompressed CRC
+_INDEX_HEADER = struct.Struct("<HI")  # channel id, byte length of the entries
 _U32 = struct.Struct("<I")
 _U64 = struct.Struct("<Q")
 
@@ -48,6 +53,7 @@ class Op(IntEnum):
     CHANNEL = 0x04
     MESSAGE = 0x05
     CHUNK = 0x06
+    MESSAGE_INDEX = 0x07
     ATTACHMENT = 0x09
     METADATA = 0x0C
     DATA_END = 0x0F
@@ -55,6 +61,44 @@ class Op(IntEnum):
 
 #: what :func:`records` yields after filling the buckets from a chunk or a message record
 FILLED = object()
+
+
+class IndexedChunk:
+    """A chunk read through the message indexes that follow it (``records(..., indexed=...)``).
+
+    Attributes
+    ----------
+    data
+        The chunk's records, uncompressed.
+    entries
+        Channel kind -> (k, 2) uint64 array of (log time ns, offset in ``data``) of the kind's
+        messages, in file order.
+    """
+
+    def __init__(self, data: bytes):
+        self.data = data
+        self.entries: dict[int, np.ndarray] = {}
+
+    def message(self, offset: int, log_time: int) -> bytes:
+        """The data of the message record at ``offset``, which must have ``log_time``.
+
+        Raises
+        ------
+        ValueError
+            No such message record there.
+        """
+        data = self.data
+        if offset + _RECORD_HEADER.size + _MESSAGE_HEADER.size > len(data):
+            raise ValueError(f"message index offset {offset} past the chunk")
+        op, length = _RECORD_HEADER.unpack_from(data, offset)
+        start = offset + _RECORD_HEADER.size
+        if op != Op.MESSAGE or start + length > len(data):
+            raise ValueError(f"no message record at chunk offset {offset}")
+        _, _, when, _ = _MESSAGE_HEADER.unpack_from(data, start)
+        if when != log_time:
+            raise ValueError(f"message at chunk offset {offset} has another log time")
+        return data[start + _MESSAGE_HEADER.size : start + length]
+
 
 #: channel kind -> (message data, log times, ns) collected so far
 Buckets = dict[int, tuple[list[bytes], list[int]]]
@@ -71,6 +115,7 @@ def records(
     finished: bool,
     classify: Callable[[Channel], int | None],
     buckets: Buckets,
+    indexed: dict[int, int] | None = None,
 ) -> Iterator[Any]:
     """Read the top-level records in file order; stops quietly at a cut.
 
@@ -79,13 +124,19 @@ def records(
     ``classify`` gave a kind to is appended to ``buckets[kind]``, and :data:`FILLED` is yielded
     after each chunk or message record so the caller can drain the buckets.
 
+    With ``indexed`` (channel id -> kind, from a finished file's summary), chunks are not cut
+    into records: each is yielded as an :class:`IndexedChunk` holding the entries of the message
+    index records that follow it for the channels of those kinds, and the caller takes what it
+    needs from it.
+
     Raises
     ------
     DataError
         ``corrupt MCAP data at byte ...`` for anything that does not parse where the file is
         not cut (see the module docstring); DataErrors from ``classify`` pass through.
     """
-    kinds: dict[int, int] = {}
+    kinds: dict[int, int] = dict(indexed or {})
+    pending: list[IndexedChunk] = []  # the chunk whose message indexes are being read
     fh.seek(0)
     crc = zlib.crc32(fh.read(len(MAGIC)))
     while True:
@@ -105,7 +156,16 @@ def records(
                 if expected != 0 and expected != crc:
                     raise ValueError(f"data section CRC {crc:#x}, expected {expected:#x}")
             crc = zlib.crc32(content, zlib.crc32(header, crc))
-            found = _record(op, content, kinds, classify, buckets)
+            if indexed is not None and op == Op.MESSAGE_INDEX:
+                if pending:
+                    _add_index(pending[0], content, kinds)
+                continue
+            found = pending[:]
+            pending.clear()
+            if indexed is not None and op == Op.CHUNK:
+                pending.append(IndexedChunk(_chunk_data(content)))
+            else:
+                found += _record(op, content, kinds, classify, buckets)
         except DataError:
             raise
         except Exception as exc:  # struct.error, zstd errors, bad UTF-8... from any record
@@ -150,6 +210,38 @@ def _decompress(compression: str, data: bytes, size: int) -> bytes:
     raise ValueError(f"unsupported chunk compression {compression!r}")
 
 
+def _chunk_data(content: bytes) -> bytes:
+    """The records of a chunk record, decompressed and their CRC checked."""
+    _, _, usize, ucrc = _CHUNK_HEADER.unpack_from(content)
+    at = _CHUNK_HEADER.size
+    (n,) = _U32.unpack_from(content, at)
+    compression = content[at + 4 : at + 4 + n].decode()
+    at += 4 + n
+    (n,) = _U64.unpack_from(content, at)
+    at += 8
+    if at + n > len(content):
+        raise ValueError("chunk records run past the chunk")
+    data = _decompress(compression, content[at : at + n], usize)
+    if len(data) != usize:
+        raise ValueError(f"chunk holds {len(data)} bytes, its header says {usize}")
+    if ucrc != 0 and zlib.crc32(data) != ucrc:
+        raise ValueError("chunk CRC mismatch")
+    return data
+
+
+def _add_index(chunk: IndexedChunk, content: bytes, kinds: dict[int, int]) -> None:
+    """Keep a message index record's entries if its channel has a kind."""
+    channel_id, n = _INDEX_HEADER.unpack_from(content)
+    kind = kinds.get(channel_id)
+    if kind is None:
+        return
+    if n % 16 or _INDEX_HEADER.size + n > len(content):
+        raise ValueError(f"message index of {n} bytes")
+    entries = np.frombuffer(content, dtype="<u8", count=n // 8, offset=_INDEX_HEADER.size)
+    entries = entries.reshape(-1, 2)
+    chunk.entries[kind] = entries[np.argsort(entries[:, 1], kind="stable")]
+
+
 def _record(
     op: int,
     content: bytes,
@@ -158,21 +250,7 @@ def _record(
     buckets: Buckets,
 ) -> list[Any]:
     if op == Op.CHUNK:
-        _, _, usize, ucrc = _CHUNK_HEADER.unpack_from(content)
-        at = _CHUNK_HEADER.size
-        (n,) = _U32.unpack_from(content, at)
-        compression = content[at + 4 : at + 4 + n].decode()
-        at += 4 + n
-        (n,) = _U64.unpack_from(content, at)
-        at += 8
-        if at + n > len(content):
-            raise ValueError("chunk records run past the chunk")
-        data = _decompress(compression, content[at : at + n], usize)
-        if len(data) != usize:
-            raise ValueError(f"chunk holds {len(data)} bytes, its header says {usize}")
-        if ucrc != 0 and zlib.crc32(data) != ucrc:
-            raise ValueError("chunk CRC mismatch")
-        return [*_split_chunk(data, kinds, classify, buckets), FILLED]
+        return [*_split_chunk(_chunk_data(content), kinds, classify, buckets), FILLED]
     if op == Op.MESSAGE:
         channel_id, _, log_time, _ = _MESSAGE_HEADER.unpack_from(content)
         kind = kinds.get(channel_id)

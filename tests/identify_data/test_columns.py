@@ -4,13 +4,16 @@ with the JSON messages are not used."""
 
 from __future__ import annotations
 
+import functools
 import logging
 import os
+import struct
 from pathlib import Path
 
 import numpy as np
 import pytest
 from mcap.reader import make_reader
+from mcap.writer import IndexType, Writer
 
 import drivegain.formats.logreader as logreader
 import drivegain.formats.logwriter as logwriter
@@ -46,6 +49,10 @@ def write_mixed(out: Path, n: int = 700, flush_at: int = 300) -> dict[str, np.nd
     with LogWriter(out, meta()) as w:
         for i in range(n):
             write_cycle(w, s, i, measured=i % 7 != 0)
+            if i in (10, 400):
+                w.write_event(
+                    log_time_ns=i * 4_000_000, level="info", node=None, code=i, text="phase"
+                )
             if i + 1 == flush_at:
                 w.flush()
     return s
@@ -62,11 +69,23 @@ def block_rows(path: Path) -> list[int]:
         ]
 
 
+@pytest.mark.parametrize(
+    "index",
+    [IndexType.ALL, IndexType.CHUNK],
+    ids=["chunks read through their message indexes", "chunks cut into records"],
+)
 def test_blocks_are_read_in_place_of_the_json_messages_and_give_the_same_run(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, index: IndexType
 ) -> None:
+    monkeypatch.setattr(logwriter, "Writer", functools.partial(Writer, index_types=index))
     out = tmp_path / "run.mcap"
     s = write_mixed(out)
+    with out.open("rb") as fh:
+        summary = make_reader(fh).get_summary()
+    assert summary is not None
+    assert all(
+        bool(c.message_index_offsets) == (index == IndexType.ALL) for c in summary.chunk_indexes
+    )
     # blocks close when full, at a flush and at the end
     assert block_rows(out) == [BLOCK_ROWS, 300 - BLOCK_ROWS, BLOCK_ROWS, 400 - BLOCK_ROWS]
 
@@ -86,6 +105,7 @@ def test_blocks_are_read_in_place_of_the_json_messages_and_give_the_same_run(
     fast = read_run(out)
     assert decoded == block_rows(out)
     assert_same(fast, slow)
+    assert [e["code"] for e in fast.events] == [10, 400] and fast.events == slow.events
     # and both are what was written (null -> NaN, inf -> NaN)
     assert np.array_equal(fast.position, s["position"])
     assert np.isnan(fast.current[::7]).all() and np.isnan(fast.setpoint[5, 2])
@@ -162,3 +182,14 @@ def test_a_cut_file_is_read_from_its_json_messages(tmp_path: Path) -> None:
     got = read_run(w.part_path)
     assert got.truncated and got.messages_recovered == BLOCK_ROWS + 11
     assert np.array_equal(got.position, s["position"][: BLOCK_ROWS + 11])
+
+
+def test_an_indexed_chunk_refuses_an_offset_that_is_not_the_message() -> None:
+    from drivegain.formats.mcapscan import IndexedChunk
+
+    record = struct.pack("<BQ", 0x05, 22 + 3) + struct.pack("<HIQQ", 1, 0, 77, 77) + b"abc"
+    chunk = IndexedChunk(b"\x00" * 5 + record)
+    assert chunk.message(5, 77) == b"abc"
+    for offset, log_time in ((5, 78), (0, 77), (6, 77), (len(record), 77)):
+        with pytest.raises(ValueError):
+            chunk.message(offset, log_time)
