@@ -34,6 +34,9 @@ from drivegain.errors import UsageError
 
 #: Relative size of a negative eigenvalue of the (scaled) meat taken as round-off.
 PSD_TOL = 1e-10
+#: Samples per sub-block of :meth:`LaggedSums.add`: ~3 000 rows of ~75 columns, whose lagged
+#: products stay in cache (about 10 % faster than sub-blocks of 2048 samples).
+SUB_BLOCK = 512
 
 
 @dataclass(frozen=True)
@@ -67,6 +70,13 @@ class LaggedSums:
     Runs may also be fed to separate instances (one per process) and joined with
     :meth:`merge`.
 
+    The lagged Grams ``D_d = Σ_k (J_kᵀ J_(k+d) + J_(k+d)ᵀ J_k)`` take almost all of the time
+    (L + 1 products of (rows·n, P) blocks). Each is summed as
+    ``Σ_k (J_k + J_(k+d))ᵀ (J_k + J_(k+d))`` less the two lag-0 sums it contains, which are
+    the run's H less the Grams of its first or last d samples: a product of a block with
+    itself costs about half of a general one. Blocks are taken :data:`SUB_BLOCK` samples at a
+    time, which stay in cache across the lags.
+
     Parameters
     ----------
     h_inv
@@ -88,18 +98,28 @@ class LaggedSums:
         self.lag = int(lag)
         self._h_inv = h_inv
         p = h_inv.shape[0]
-        self._gram = np.zeros((self.lag + 1, p, p))  # G_d = Σ_k J_kᵀ J_(k+d)
-        self._trace = np.zeros(2 * self.lag + 1)  # tr(H⁻¹ G_d), d ≤ 2L
+        self._gram = np.zeros((self.lag + 1, p, p))  # H, then D_1..D_L (closed runs)
+        # tr(H⁻¹ G_d), G_d = Σ_k J_kᵀ J_(k+d), for L < d ≤ 2L (those up to L come from D_d)
+        self._trace = np.zeros(2 * self.lag + 1)
         self._q = np.zeros(self.lag + 1)  # Σ_k ê_(k+l)·ê_k
         self._count = np.zeros(self.lag + 1)  # Σ_runs n (N − l)
         self._tails: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._run_samples = 0
         self._n = 0
+        # the current run: its H, Σ_k (J_k + J_(k+d))ᵀ(J_k + J_(k+d)) (d = 1..L), first L samples
+        self._run_gram = np.zeros((self.lag + 1, p, p))
+        self._head: np.ndarray | None = None
 
     @property
     def bread(self) -> np.ndarray:
-        """H = Σ J_kᵀ J_k over every sample added, (P, P)."""
+        """H = Σ J_kᵀ J_k over every closed run, (P, P)."""
         return np.asarray(self._gram[0])
+
+    @property
+    def grams(self) -> list[np.ndarray]:
+        """H, then ``D_d = Σ_k (J_kᵀ J_(k+d) + J_(k+d)ᵀ J_k)`` for d = 1..L, within every
+        closed run, (P, P) each."""
+        return list(self._gram)
 
     def merge(self, other: LaggedSums) -> None:
         """Add the closed runs of ``other`` (same H⁻¹ and lag) to these."""
@@ -130,6 +150,10 @@ class LaggedSums:
             raise UsageError(f"expected (rows, n, {p}) and (rows, n), got {j.shape}, {e.shape}")
         if j.shape[0] == 0:
             return
+        if self._head is None:
+            self._head = j[: self.lag].copy()
+        elif self._head.shape[0] < self.lag:
+            self._head = np.concatenate([self._head, j[: self.lag - self._head.shape[0]]])
         # One (rows·n, P) product: a batched (n, P) @ (P, P) matmul is many times slower.
         z = (j.reshape(-1, p) @ self._h_inv).reshape(j.shape)
         if self._tails is not None:
@@ -139,18 +163,25 @@ class LaggedSums:
         else:
             first = 0
         rows = j.shape[0]
-        for d in range(2 * self.lag + 1):
-            start = max(first, d)
-            if start >= rows:
-                break
-            # Pairs (t − d, t) whose later sample t is new in this block.
-            later, earlier = slice(start, rows), slice(start - d, rows - d)
-            # Row ranges of C-ordered arrays are contiguous: dot products without temporaries.
-            self._trace[d] += float(np.vdot(z[earlier], j[later]))
-            if d <= self.lag:
-                a = j[earlier].reshape(-1, p)
-                self._gram[d] += a.T @ j[later].reshape(-1, p)
+        flat = j.reshape(rows, -1)  # a sample's rows together: sample ranges are contiguous
+        total = np.empty((min(rows - first, SUB_BLOCK) * j.shape[1], p))
+        for lo in range(first, rows, SUB_BLOCK):
+            hi = min(lo + SUB_BLOCK, rows)
+            for d in range(2 * self.lag + 1):
+                start = max(lo, d)
+                if start >= hi:
+                    break
+                # Pairs (t − d, t) whose later sample t is in [lo, hi).
+                later, earlier = slice(start, hi), slice(start - d, hi - d)
+                # Row ranges of C-ordered arrays are contiguous: dot products without temporaries.
+                if d > self.lag:
+                    self._trace[d] += float(np.vdot(z[earlier], j[later]))
+                    continue
                 self._q[d] += float(np.vdot(e[earlier], e[later]))
+                a = flat[earlier].reshape(-1, p)
+                if d:
+                    a = np.add(a, flat[later].reshape(-1, p), out=total[: a.shape[0]])
+                self._run_gram[d] += a.T @ a  # a block times itself: half of a general product
         self._run_samples += rows - first
         keep = min(rows, 2 * self.lag)
         self._tails = (j[rows - keep :], z[rows - keep :], e[rows - keep :]) if keep else None
@@ -161,8 +192,21 @@ class LaggedSums:
         if self._run_samples:
             lags = np.arange(self.lag + 1)
             self._count += self._n * np.maximum(self._run_samples - lags, 0)
+            h = self._run_gram[0]
+            self._gram[0] += h
+            if self._head is not None and self._tails is not None:  # (both kept when L > 0)
+                # Σ_(k<d) J_kᵀJ_k and Σ_(k≥N−d) J_kᵀJ_k for d = 1..L (all N samples if N < d)
+                head = self._head
+                tail = self._tails[0][::-1][: self.lag]
+                first = np.cumsum(np.einsum("kip,kiq->kpq", head, head), axis=0)
+                last = np.cumsum(np.einsum("kip,kiq->kpq", tail, tail), axis=0)
+                for d in range(1, self.lag + 1):
+                    edges = first[min(d, first.shape[0]) - 1] + last[min(d, last.shape[0]) - 1]
+                    self._gram[d] += self._run_gram[d] - 2.0 * h + edges
         self._tails = None
         self._run_samples = 0
+        self._run_gram[:] = 0.0
+        self._head = None
 
     def covariance(self) -> tuple[np.ndarray, ErrorAutocovariance]:
         """``H⁻¹ (Jᵀ Ω̂ J) H⁻¹`` with Ω̂ from the bias-corrected autocovariance, (P, P)."""
@@ -172,8 +216,11 @@ class LaggedSums:
         if self._count[0] <= p:
             raise UsageError(f"need more equations ({self._count[0]:.0f}) than parameters ({p})")
         # D_d = Jᵀ V_d J and its trace with H⁻¹; D_0 = H.
-        gram = [self._gram[0]] + [g + g.T for g in self._gram[1:]]
-        tr_d = np.concatenate([[self._trace[0]], 2.0 * self._trace[1:]])
+        gram = self.grams
+        # tr(H⁻¹ H), then tr(H⁻¹ D_d) = 2 tr(H⁻¹ G_d) with the given H⁻¹: from the sums for
+        # d ≤ L, from the pass's dot products beyond
+        tr_h = [float(np.sum(self._h_inv * d)) for d in gram]
+        tr_d = np.concatenate([tr_h, 2.0 * self._trace[lag + 1 :]])
         e_mat = [gram[0]] + [0.5 * g for g in gram[1:]]  # Jᵀ U_l J
         hd = [h_inv @ g for g in gram]
         he = [h_inv @ g for g in e_mat]

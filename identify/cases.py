@@ -156,7 +156,7 @@ def fit_case(
     y_sq = joint_residual_sq(factors, transforms, np.append(np.zeros(res.x.size), 1.0))
     nb = designs[0].nb
     if covariance:
-        cov, lag = case_covariance(designs, transforms, sigma, res.x, gain_cov)
+        cov, lag = case_covariance(designs, transforms, sigma, res.x, gain_cov, factors)
         std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     else:
         std, lag = np.full(res.x.size, np.nan), 0
@@ -202,6 +202,7 @@ def case_covariance(
     sigma: np.ndarray,
     x: np.ndarray,
     gain_cov: np.ndarray | None = None,
+    factors: Sequence[np.ndarray] | None = None,
 ) -> tuple[np.ndarray, int]:
     """HAC covariance of an IDIM-WLS solution, plus the gains' share when they are uncertain.
 
@@ -211,6 +212,14 @@ def case_covariance(
     linearly, so ∂x̂/∂g = H⁻¹Aᵀ ∂c/∂g and their covariance adds J_g Cov(g) J_gᵀ (the gains
     treated as independent of this fit's noise).
 
+    Parameters
+    ----------
+    designs, transforms, sigma, x, gain_cov
+        The runs, their column transforms, σ̂_j (N·m), the solution and the gains'
+        covariance ((N·m/A)², (n, n), or None) of :func:`fit_case`.
+    factors
+        Per run, the R factors of every joint's rows (computed when omitted).
+
     Returns
     -------
     covariance, lag
@@ -218,32 +227,28 @@ def case_covariance(
     """
     p = x.size
     n = designs[0].n
+    if factors is None:
+        factors = [d.factors() for d in designs]
     x_aug = np.append(x, -1.0)
     bread = np.zeros((p, p))
     cross = np.zeros((p, n))
-    resid = []
-    # Two passes over row blocks (the weighted rows of a long run, samples × joints ×
-    # unknowns, would dominate memory): bread, cross terms and residuals, whose
-    # autocorrelation gives the lag; then the scores' long-run sum with that lag.
-    for d, t in zip(designs, transforms, strict=True):
-        parts = []
-        for sl in _row_blocks(d.rows):
-            sub = d.subset(sl)
-            a, e = _weighted_rows(sub, t, sigma, x_aug)
-            flat = a.reshape(-1, p)
-            bread += flat.T @ flat
-            # ∂c_j/∂g_m = kt[j, m] v_m / σ_j
-            dc = sub.run.current[:, None, :] * sub.kt[None, :, :] / sigma[None, :, None]
-            cross += flat.T @ dc.reshape(-1, n)
-            parts.append(e)
-        resid.append(np.concatenate(parts))
+    # H and Aᵀ ∂c/∂g are Grams of the columns: from the R factors (RᵀR = D_jᵀD_j), with no
+    # pass over the rows. ∂c_j/∂g_m = kt[j, m] v_m / σ_j is D_j's current column m over σ_j.
+    for d, f, t in zip(designs, factors, transforms, strict=True):
+        for j in range(n):
+            a = f[j] @ t[:, :p] / sigma[j]
+            bread += a.T @ a
+            cross += a.T @ (f[j][:, d.nb + 10 :] / sigma[j])
+    # The weighted residuals e_kj = D_j,k T x̂_aug / σ_j of every sample, whose autocorrelation
+    # gives the lag; then the scores ψ_k = (Σ_j e_kj D_j,k / σ_j) T[:, :p] in row blocks
+    # (no D_j is built) and their long-run sum with that lag.
+    resid = [d.dot(t @ x_aug) / sigma[None, :] for d, t in zip(designs, transforms, strict=True)]
     lag = bartlett_lag(resid)
-    del resid
     meat = LongRunSum(p, lag)
-    for d, t in zip(designs, transforms, strict=True):
+    for d, t, e in zip(designs, transforms, resid, strict=True):
+        w = e / sigma[None, :]
         for sl in _row_blocks(d.rows):
-            a, e = _weighted_rows(d.subset(sl), t, sigma, x_aug)
-            meat.add(np.matmul(e[:, None, :], a)[:, 0, :])
+            meat.add(d.subset(sl).tdot(w[sl]) @ t[:, :p])
         meat.end_run()
     rows = sum(d.rows for d in designs) * n
     cov = sandwich(bread, meat.meat(), rows, p)
@@ -253,21 +258,12 @@ def case_covariance(
     return cov, lag
 
 
-#: Samples per row block of :func:`case_covariance` (bounds the memory of long runs).
+#: Samples per row block of :func:`case_covariance`'s scores (bounds the memory of long runs).
 ROW_BLOCK = 2048
 
 
 def _row_blocks(samples: int) -> list[slice]:
     return [slice(k, min(k + ROW_BLOCK, samples)) for k in range(0, samples, ROW_BLOCK)]
-
-
-def _weighted_rows(
-    d: Design, t: np.ndarray, sigma: np.ndarray, x_aug: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Weighted columns A (N, n, p) of ``d`` and its equation errors A x̂ − c (N, n)."""
-    p = x_aug.size - 1
-    blocks = np.stack([(d.block(j) @ t) / sigma[j] for j in range(d.n)], axis=1)
-    return blocks[:, :, :p], blocks @ x_aug
 
 
 def predictions(

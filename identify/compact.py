@@ -91,11 +91,12 @@ class CompactRegressor:
     def dot(self, coef: np.ndarray) -> np.ndarray:
         """``dense @ coef`` for ``coef`` (c,): the torque of each joint, (N, n)."""
         coef = np.asarray(coef, dtype=float)
-        out = np.zeros((self.samples, self.n))
-        for j in range(self.n):
-            mine = self.joint == j
-            out[:, j] = self.series[:, mine] @ coef[self.column[mine]]
-        return out
+        # One product with a (k, n) matrix holding each series' coefficient in its joint's
+        # column: a single pass over the series (gathering each joint's takes three times as
+        # long); the zeros add nothing.
+        by_joint = np.zeros((self.joint.size, self.n))
+        by_joint[np.arange(self.joint.size), self.joint] = coef[self.column]
+        return np.asarray(self.series @ by_joint)
 
     def dense(self) -> np.ndarray:
         """The dense regressor, (N, n, c) (for tests and small runs)."""

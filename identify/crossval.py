@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from drivegain.errors import InputError
+from drivegain.identify import forked
 from drivegain.identify.cases import fit_case, prediction_quality, predictions
 from drivegain.identify.design import Design
 from drivegain.identify.estimate import r_factor
@@ -102,13 +103,17 @@ def cross_validate(
 
 
 def split_factors(
-    designs: Sequence[Design], fraction: float = CV_FRACTION
+    designs: Sequence[Design], fraction: float = CV_FRACTION, *, parallel: bool = False
 ) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """Per run, the R factors of all its rows and of its fitted part (:func:`split_runs`).
 
     The fitted part and the held-out end are reduced separately; stacking their two small
     factors and reducing again gives the whole run's, so the cross-validation costs no pass
     over the rows of its own.
+
+    With ``parallel`` (long runs, and not called from a forked child: multiprocessing forbids
+    it to fork again), the first run's QRs are made in a forked child while the others' are
+    made here (:mod:`.forked`; the same result either way).
 
     Returns
     -------
@@ -117,10 +122,18 @@ def split_factors(
     """
     if not 0.0 < fraction < 1.0:
         raise InputError(f"must be in (0, 1), got {fraction}", key="cv_fraction")
-    train, test = split_runs(designs, fraction)
-    fitted = [d.factors() for d in train]
-    whole = [
-        np.stack([r_factor(np.vstack([f[j], h[j]])) for j in range(d.n)])
-        for d, f, h in zip(train, fitted, (d.factors() for d in test), strict=True)
-    ]
+    pairs = forked.map_items(
+        "cross-validation factors",
+        lambda d: _split_factors(d, fraction),
+        designs,
+        parallel=parallel,
+    )
+    return [w for w, _ in pairs], [f for _, f in pairs]
+
+
+def _split_factors(d: Design, fraction: float) -> tuple[np.ndarray, np.ndarray]:
+    """One run's whole and fitted-part R factors (:func:`split_factors`)."""
+    (train,), (test,) = split_runs([d], fraction)
+    fitted, held = train.factors(), test.factors()
+    whole = np.stack([r_factor(np.vstack([fitted[j], held[j]])) for j in range(d.n)])
     return whole, fitted

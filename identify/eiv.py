@@ -19,13 +19,13 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from drivegain.config.payload import Payload
 from drivegain.identify.design import Design
 from drivegain.identify.hac import LongRunSum
-from drivegain.identify.ml import LinearStart, MLFit, least_squares
 from drivegain.identify.mlmodel import (
     RunArrays,
     Whitening,
@@ -35,6 +35,10 @@ from drivegain.identify.mlmodel import (
     scores,
     whitened_block,
 )
+from drivegain.identify.mlstart import LinearStart, least_squares
+
+if TYPE_CHECKING:  # ml sums the test's scores in its covariance pass: it imports this module
+    from drivegain.identify.ml import MLFit
 
 #: Significance level below which the report says plain LS is biased on the data.
 LEVEL = 0.01
@@ -70,6 +74,58 @@ class EIVTest:
         return self.p_value < LEVEL
 
 
+class InfluenceSums:
+    """The per-sample influences of both estimators of the test, summed in one pass.
+
+    The least squares' influence on the gains is ``ψ_ls,k H_ls⁻¹[:, g]`` (its scores
+    ψ_ls,k = −Σ_j w_j² e_kj m_kj: rows m_kj, equation errors e_kj, row weights w_j); the
+    likelihood's is ``ψ_ml,k H⁻¹[:, g]`` (ψ_ml,k = J̃_kᵀ ẽ_k), whose H is the bread its
+    covariance pass is still summing. So the pass sums [LS influence (n), ψ_ml (P)] in one
+    Newey-West long-run sum S (:class:`~.hac.LongRunSum`), and the covariance of any
+    combination is a quadratic form in S once H is known: the sums ride along the likelihood's
+    covariance pass, which has J̃ and ẽ at hand (:func:`~drivegain.identify.ml.ml_fit`).
+
+    Parameters
+    ----------
+    ls
+        The least squares of the test.
+    kt
+        Coupling factor of the current matrix, (n, n).
+    lag
+        Newey-West lag, samples.
+    nb
+        Base parameters (the gains follow them in θ).
+    """
+
+    def __init__(self, ls: LinearStart, kt: np.ndarray, lag: int, nb: int):
+        self._ls = ls
+        self._kt = np.asarray(kt, float)
+        n = self._kt.shape[0]
+        self._proj = np.linalg.pinv(ls.hessian, hermitian=True)[:, nb : nb + n]
+        self._sum = LongRunSum(n + ls.theta.size, lag)
+
+    def add(self, sub: RunArrays, jw: np.ndarray, ew: np.ndarray) -> None:
+        """The next rows ``sub`` of the current run, with the likelihood's whitened Jacobian
+        ``jw`` (rows, n, P) and residuals ``ew`` (rows, n) there
+        (:func:`~.mlmodel.whitened_block`)."""
+        m = ls_rows(sub, self._kt)
+        e = m @ self._ls.theta - sub.tau_known
+        infl_ls = -np.matmul((e * self._ls.weights**2)[:, None, :], m)[:, 0, :] @ self._proj
+        self._sum.add(np.hstack([infl_ls, scores(jw, ew)]))
+
+    def end_run(self) -> None:
+        """Close the current run."""
+        self._sum.end_run()
+
+    def merge(self, other: InfluenceSums) -> None:
+        """Add the closed runs of ``other`` (same least squares and lag)."""
+        self._sum.merge(other._sum)
+
+    def meat(self) -> np.ndarray:
+        """S of [LS influence on the gains, ψ_ml], (n + P, n + P)."""
+        return self._sum.meat()
+
+
 def eiv_test(
     fit: MLFit,
     a: Design,
@@ -90,7 +146,8 @@ def eiv_test(
     runs
         ``[run_arrays(a, payload), run_arrays(b, payload)]`` when the caller has them already.
     ls
-        :func:`~drivegain.identify.ml.least_squares` of those runs when already computed.
+        :func:`~drivegain.identify.mlstart.least_squares` of those runs when already computed
+        (:attr:`~drivegain.identify.ml.MLFit.linear`).
 
     Returns
     -------
@@ -100,33 +157,32 @@ def eiv_test(
     from scipy.stats import chi2
 
     nb, n = a.nb, a.n
-    if runs is None:
-        runs = [run_arrays(a, payload), run_arrays(b, payload)]
-    kt = np.asarray(a.kt, float)
-    kt_inv = np.linalg.inv(kt)
-    if ls is None:
-        ls = least_squares(runs, kt)
-    theta_ml = np.concatenate([fit.chi, fit.gains, fit.payload_unknown])
-    whiten = Whitening(fit.noise, fit.kappa)
+    if fit.influence is not None and fit.linear is not None and (ls is None or ls is fit.linear):
+        # summed in the fit's covariance pass (ml_fit(influence=True))
+        ls, meat = fit.linear, fit.influence
+    else:
+        if runs is None:
+            runs = [run_arrays(a, payload), run_arrays(b, payload)]
+        kt = np.asarray(a.kt, float)
+        kt_inv = np.linalg.inv(kt)
+        if ls is None:
+            ls = least_squares(runs, kt)
+        theta_ml = np.concatenate([fit.chi, fit.gains, fit.payload_unknown])
+        whiten = Whitening(fit.noise, fit.kappa)
+        sums = InfluenceSums(ls, kt, fit.lag, nb)
+        for run in runs:
+            for sl in chunks(run.samples):
+                sub = run.rows(sl)
+                sums.add(sub, *whitened_block(theta_ml, sub, kt_inv, whiten))
+            sums.end_run()
+        meat = sums.meat()
     gains = slice(nb, nb + n)
-    # Only the gains' rows of each sample's first-order influence H⁻¹ψ_k enter the test: the
-    # per-sample influences are formed block by block, n columns each, never held whole.
-    proj_ls = np.linalg.pinv(ls.hessian, hermitian=True)[:, gains]
+    # Only the gains' rows of each sample's first-order influence H⁻¹ψ_k enter the test, and
+    # the long-run sum is bilinear: the difference's covariance is a quadratic form in S.
     proj_ml = np.linalg.pinv(fit.hessian, hermitian=True)[:, gains]
-    w2 = ls.weights**2
-    diff_sum, ls_sum = LongRunSum(n, fit.lag), LongRunSum(n, fit.lag)
-    for run in runs:
-        for sl in chunks(run.samples):
-            sub = run.rows(sl)
-            m = ls_rows(sub, kt)
-            e = m @ ls.theta - sub.tau_known
-            infl_ls = -np.matmul((e * w2)[:, None, :], m)[:, 0, :] @ proj_ls
-            infl_ml = scores(*whitened_block(theta_ml, sub, kt_inv, whiten)) @ proj_ml
-            diff_sum.add(infl_ls - infl_ml)
-            ls_sum.add(infl_ls)
-        diff_sum.end_run()
-        ls_sum.end_run()
-    cov_d, cov_ls = diff_sum.meat(), ls_sum.meat()
+    q = np.vstack([np.eye(n), -proj_ml])  # [LS influence, ψ_ml] q = LS's − ML's influence
+    cov_d = q.T @ meat @ q
+    cov_ls = meat[:n, :n]
     d = ls.theta[gains] - fit.gains
     # Rank from the eigenvalues: a direction with no variance carries no test.
     evals, evecs = np.linalg.eigh(cov_d)

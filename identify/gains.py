@@ -22,7 +22,7 @@ from drivegain.errors import IdentificationError, InputError
 from drivegain.identify.design import Design, ls_transform
 from drivegain.identify.eiv import EIVTest, eiv_test
 from drivegain.identify.estimate import ScaleError
-from drivegain.identify.ml import MLFit, least_squares, ml_fit
+from drivegain.identify.ml import MLFit, ml_fit
 from drivegain.identify.mlmodel import run_arrays
 from drivegain.identify.weighting import joint_sigma
 from drivegain.identify.wtls import SIGMA_MAX_ITER, WTLSFit, wtls_covariance, wtls_fit
@@ -158,12 +158,12 @@ def estimate_gains(
         raise InputError(
             "α is a weight of the paper's estimator: use it with --estimator paper", key="alpha"
         )
-    # The model's arrays and the least squares are built once for the fit and the test.
+    # The model's arrays are built once for the fit and the test, and so is the least squares
+    # (the fit's start, MLFit.linear); the fit's covariance pass also sums the test's scores.
     runs = [run_arrays(a, payload), run_arrays(b, payload)]
-    ls = least_squares(runs, np.asarray(a.kt, float))
-    fit = ml_fit(a, b, payload, start=ls.theta, step=step, runs=runs, parallel=parallel)
+    fit = ml_fit(a, b, payload, step=step, runs=runs, parallel=parallel, influence=True)
     step("errors-in-variables test")
-    test = eiv_test(fit, a, b, payload, runs=runs, ls=ls)
+    test = eiv_test(fit, a, b, payload, runs=runs, ls=fit.linear)
     del runs
     warnings: list[str] = []
     if not fit.converged:

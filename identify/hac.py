@@ -163,6 +163,15 @@ class LongRunSum:
             self._sum += moving.T @ moving
         self._tail = np.zeros((0, self._sum.shape[0]))
 
+    def merge(self, other: LongRunSum) -> None:
+        """Add the closed runs of ``other`` (same lag and size, e.g. summed in another
+        process) to these."""
+        if other.lag != self.lag or other._sum.shape != self._sum.shape:
+            raise UsageError(f"cannot merge sums of lag {other.lag} into sums of lag {self.lag}")
+        if self._tail.shape[0] or other._tail.shape[0]:
+            raise UsageError("close every run (end_run) before merging")
+        self._sum += other._sum
+
     def meat(self) -> np.ndarray:
         """S of every run added so far (call :meth:`end_run` after the last one)."""
         return np.asarray(self._sum / (self.lag + 1.0))

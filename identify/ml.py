@@ -48,18 +48,18 @@ from drivegain.errors import IdentificationError
 from drivegain.identify import forked, mlreduce
 from drivegain.identify.autocov import ErrorAutocovariance, LaggedSums
 from drivegain.identify.design import Design
-from drivegain.identify.estimate import r_factor
+from drivegain.identify.eiv import InfluenceSums
 from drivegain.identify.hac import bartlett_lag, lag1_autocorrelation
 from drivegain.identify.mlmodel import (
     RunArrays,
     Whitening,
     chunks,
-    ls_rows,
     predict,
     run_arrays,
     split_theta,
     whitened_block,
 )
+from drivegain.identify.mlstart import LinearStart, least_squares
 
 #: Gauss-Newton: stop when the step moves the whitened fit by less than this (squared norm,
 #: in units of the noise): the parameters then move by ~1e-5 of their standard deviations.
@@ -113,6 +113,13 @@ class MLFit:
     hessian
         H = Σ_k J̃_kᵀ J̃_k at the estimate, the bread of the sandwich (kept for the
         errors-in-variables test, which needs the same H).
+    linear
+        The linear least squares that started the search (:mod:`.mlstart`; None when the
+        caller gave the start).
+    influence
+        Long-run sum of ``linear``'s per-sample influence on the gains beside this fit's
+        per-sample scores, summed in the covariance pass for the errors-in-variables test
+        (:class:`.eiv.InfluenceSums`; None unless asked for).
     """
 
     chi: np.ndarray
@@ -130,6 +137,8 @@ class MLFit:
     start_gains: np.ndarray
     rows: int
     hessian: np.ndarray
+    linear: LinearStart | None = None
+    influence: np.ndarray | None = None
 
     @property
     def std_all(self) -> np.ndarray:
@@ -206,66 +215,6 @@ def _round_off(mean_square: np.ndarray) -> np.ndarray:
     return np.maximum(ROUND_OFF_VARIANCE * mean_square, 1e-300)
 
 
-@dataclass(frozen=True)
-class LinearStart:
-    """The least squares with V as regressor (:func:`least_squares`).
-
-    Attributes
-    ----------
-    theta
-        (χ, g, χ_uL) of the row-weighted least squares.
-    weights
-        Row weight of each joint, 1/σ_j from a first unweighted pass, 1/(N·m), (n,).
-    hessian
-        Its normal matrix Σ_k Σ_j w_j² m_kjᵀ m_kj, (P, P) (m_kj the rows of :func:`ls_rows`).
-    """
-
-    theta: np.ndarray
-    weights: np.ndarray
-    hessian: np.ndarray
-
-
-def least_squares(runs: Sequence[RunArrays], kt: np.ndarray) -> LinearStart:
-    """θ of the least squares ``V K g − W χ − W_uL χ_uL = W_kL χ_kL`` (torque units).
-
-    Rows of joint j are weighted by 1/σ_j of a first unweighted pass. With noisy currents this
-    estimate is attenuated (errors in variables); it starts the likelihood search and is the
-    plain LS of the errors-in-variables test.
-
-    One pass over the samples in row blocks: each joint's rows ``[m_j | τ_kL,j]`` are reduced
-    to their R factor, from which both passes' solutions, the per-joint residual norms and the
-    normal matrix follow (``RᵀR = [m | τ]ᵀ[m | τ]``); no (samples × joints × unknowns) matrix
-    is ever held whole.
-    """
-    n = runs[0].v.shape[1]
-    p = runs[0].base_idx.size + n + runs[0].nu
-    factors = np.zeros((n, p + 1, p + 1))
-    samples = 0
-    for run in runs:
-        for sl in chunks(run.samples):
-            sub = run.rows(sl)
-            aug = np.concatenate([ls_rows(sub, kt), sub.tau_known[:, :, None]], axis=2)
-            for j in range(n):
-                factors[j] = r_factor(np.vstack([factors[j], aug[:, j, :]]))
-            samples += sub.samples
-
-    def solve(weights: np.ndarray) -> np.ndarray:
-        r = r_factor((factors * weights[:, None, None]).reshape(-1, p + 1))
-        theta, *_ = np.linalg.lstsq(r[:p, :p], r[:p, p], rcond=None)
-        return np.asarray(theta)
-
-    w = np.ones(n)
-    theta = solve(w)
-    x_aug = np.append(theta, -1.0)
-    sigma = np.sqrt(np.array([np.sum((f @ x_aug) ** 2) for f in factors]) / samples)
-    top = float(sigma.max())
-    if top > 0.0:
-        w = 1.0 / np.maximum(sigma, 1e-9 * top)
-        theta = solve(w)
-    gram = np.einsum("jkp,jkq->jpq", factors[:, :, :p], factors[:, :, :p])
-    return LinearStart(theta=theta, weights=w, hessian=np.einsum("j,jpq->pq", w**2, gram))
-
-
 def ml_fit(
     a: Design,
     b: Design,
@@ -275,6 +224,7 @@ def ml_fit(
     step: Callable[[str], None] | None = None,
     runs: Sequence[RunArrays] | None = None,
     parallel: bool = False,
+    influence: bool = False,
 ) -> MLFit:
     """Maximum-likelihood drive gains from an unloaded run a and a loaded run b.
 
@@ -286,16 +236,22 @@ def ml_fit(
         The payload of run b; its ``known`` parameters (at least one, e.g. the mass) set the
         scale of the solution.
     start
-        Starting (χ, g, χ_uL); default the linear least squares of :func:`least_squares`.
+        Starting (χ, g, χ_uL); default the linear least squares of
+        :func:`~.mlstart.least_squares`, returned in :attr:`MLFit.linear`.
     step
         Progress callback (one line per phase).
     runs
         ``[run_arrays(a, payload), run_arrays(b, payload)]`` when the caller has them already
         (built here otherwise).
     parallel
-        The runs are long enough for run a to be reduced (once per κ) and its covariance sums
-        built in a forked child while run b's are here (:mod:`.forked`; the same result either
-        way).
+        The runs are long enough for the default start to be computed in a forked child while
+        both runs are reduced at κ = 0 here, and for run a to be reduced at κ̂ and its
+        covariance sums built in a forked child while run b's are here (:mod:`.forked`; the
+        same result either way).
+    influence
+        Also sum, in the covariance pass, the scores the errors-in-variables test needs
+        (:attr:`MLFit.influence`; with the default start only), so that the test makes no
+        pass over the samples of its own.
 
     Returns
     -------
@@ -322,7 +278,26 @@ def ml_fit(
     kt_inv = np.linalg.inv(kt)
     nb, n = a.nb, a.n
     names = [p for p, k in zip(PAYLOAD_PARAMS, known, strict=True) if not k]
-    theta = least_squares(runs, kt).theta if start is None else np.asarray(start, float).copy()
+    samples = sum(r.samples for r in runs)
+    floor = _round_off(np.mean(np.vstack([r.v for r in runs]) ** 2, axis=0))
+    # Each step works on the runs reduced once per κ (:mod:`.mlreduce`), not on the samples.
+    linear = None
+    if start is None:
+        # The start's pass over the samples does not need the reduction: in a forked child
+        # while both runs are reduced here (the same results either way).
+        pending = forked.start(
+            "least-squares start", lambda: least_squares(runs, kt), parallel=parallel
+        )
+        try:
+            reduced = _reduce(runs, kt_inv, np.zeros(n))
+        except BaseException:
+            pending.cancel()
+            raise
+        linear = pending.result()
+        theta = linear.theta.copy()
+    else:
+        reduced = _reduce(runs, kt_inv, np.zeros(n), parallel)
+        theta = np.asarray(start, float).copy()
     start_gains = theta[nb : nb + n].copy()
     if np.any(theta[nb : nb + n] == 0.0) or not np.all(np.isfinite(theta)):
         raise IdentificationError(
@@ -346,10 +321,6 @@ def ml_fit(
 
     converged = False
     rounds = 0
-    samples = sum(r.samples for r in runs)
-    floor = _round_off(np.mean(np.vstack([r.v for r in runs]) ** 2, axis=0))
-    # Each step works on the runs reduced once per κ (:mod:`.mlreduce`), not on the samples.
-    reduced = _reduce(runs, kt_inv, np.zeros(n), parallel)
     gram = gram_at(theta)  # of the runs as reduced, at θ
     whiten = noise(gram, np.zeros(n))
     # κ is estimated once, from the residuals of the fit with κ = 0 once it has (nearly)
@@ -421,14 +392,18 @@ def ml_fit(
     # less than 1e-5 σ since; an error in it only touches the correction for the fit, see
     # LaggedSums): one pass over the blocks, the first run's in a forked child meanwhile.
     h_inv = np.linalg.pinv(last_r.T @ last_r, hermitian=True)
-    sums, *rest = forked.map_items(
+    # With ``influence``, the errors-in-variables test's sums from the same blocks.
+    test_ls = linear if influence else None
+    (sums, infl), *rest = forked.map_items(
         "maximum-likelihood covariance",
-        lambda r: _run_sums(theta, r, kt_inv, whiten, h_inv, lag),
+        lambda r: _run_sums(theta, r, kt_inv, whiten, h_inv, lag, test_ls, kt),
         runs,
         parallel=parallel,
     )
-    for other in rest:
+    for other, other_infl in rest:
         sums.merge(other)
+        if infl is not None and other_infl is not None:
+            infl.merge(other_infl)
     cov, autocov = sums.covariance()
     bread = sums.bread
     rows = sum(r.samples for r in runs) * n
@@ -449,6 +424,8 @@ def ml_fit(
         start_gains=start_gains,
         rows=rows,
         hessian=bread,
+        linear=linear,
+        influence=None if infl is None else infl.meat(),
     )
 
 
@@ -459,13 +436,26 @@ def _run_sums(
     whiten: Whitening,
     h_inv: np.ndarray,
     lag: int,
-) -> LaggedSums:
-    """One run's lagged sums for the covariance (:class:`~.autocov.LaggedSums`)."""
+    linear: LinearStart | None = None,
+    kt: np.ndarray | None = None,
+) -> tuple[LaggedSums, InfluenceSums | None]:
+    """One run's lagged sums for the covariance (:class:`~.autocov.LaggedSums`) and, given
+    the linear start ``linear`` and the coupling factor ``kt``, the errors-in-variables
+    test's sums (:class:`~.eiv.InfluenceSums`) from the same blocks."""
     sums = LaggedSums(h_inv, lag)
+    infl = None
+    if linear is not None and kt is not None:
+        infl = InfluenceSums(linear, kt, lag, run.base_idx.size)
     for sl in chunks(run.samples):
-        sums.add(*whitened_block(theta, run.rows(sl), kt_inv, whiten))
+        sub = run.rows(sl)
+        jw, ew = whitened_block(theta, sub, kt_inv, whiten)
+        sums.add(jw, ew)
+        if infl is not None:
+            infl.add(sub, jw, ew)
     sums.end_run()
-    return sums
+    if infl is not None:
+        infl.end_run()
+    return sums, infl
 
 
 def _reduce(

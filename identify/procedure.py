@@ -267,7 +267,7 @@ def _run_procedure(problem: Problem, options: Options, step: Step) -> ProcedureR
     apriori = robot.apriori_gains
     warnings: list[str] = []
     main = [a] if b is None else [a, b]
-    factors, train_factors = split_factors(main, options.cv_fraction)
+    factors, train_factors = split_factors(main, options.cv_fraction, parallel=_long(main))
 
     wtls = None
     if options.gains is not None:
@@ -387,6 +387,7 @@ def _form_fit(
     obp = problem.bases[form]
     od = [make_design(d.run, obp, form, problem.robot) for d in main]
     names = list(obp.names)
+    # in a forked child when the other forms are fitted in parallel: no fork from here
     factors, train_factors = split_factors(od, cv_fraction)
     fit = fit_case(case, od, gains, names, factors)
     cv = cross_validate(od, gains, names, cv_fraction, train_factors)

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from drivegain.errors import UsageError
+from drivegain.identify import autocov
 from drivegain.identify.autocov import LaggedSums
 from drivegain.identify.hac import LongRunSum, sandwich
 from drivegain.identify.signal import parallel_decimate
@@ -175,3 +176,28 @@ def test_refuses_bad_input() -> None:
     sums.end_run()
     with pytest.raises(UsageError, match="more equations"):
         sums.covariance()
+
+
+@pytest.mark.parametrize(("block", "sub"), [(10_000, 512), (7, 3), (1, 1), (64, 5)])
+def test_lagged_grams_equal_the_sums_over_pairs(monkeypatch, block: int, sub: int) -> None:
+    """H and D_d = Σ_k (J_kᵀJ_(k+d) + J_(k+d)ᵀJ_k) within each run, as summed pair by pair,
+    with runs shorter than the lag and block and sub-block edges inside it."""
+    monkeypatch.setattr(autocov, "SUB_BLOCK", sub)
+    rng = np.random.default_rng(8)
+    lag, n, p = 9, 3, 5
+    jac = [_slow_design(rng, k, n, p) + 0.1 * rng.standard_normal((k, n, p)) for k in (150, 4, 37)]
+    resid = [rng.standard_normal(j.shape[:2]) for j in jac]
+    sums = LaggedSums(np.eye(p), lag)
+    for j, e in zip(jac, resid, strict=True):
+        for start in range(0, j.shape[0], block):
+            sums.add(j[start : start + block], e[start : start + block])
+        sums.end_run()
+    expected = [sum(np.einsum("kip,kiq->pq", j, j) for j in jac)]
+    for d in range(1, lag + 1):
+        g = sum(np.einsum("kip,kiq->pq", j[:-d], j[d:]) for j in jac if j.shape[0] > d)
+        expected.append(g + g.T)
+    scale = np.abs(expected[0]).max()
+    assert len(sums.grams) == lag + 1
+    for got, want in zip(sums.grams, expected, strict=True):
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-12 * scale)
+    np.testing.assert_allclose(sums.bread, expected[0], rtol=0, atol=1e-12 * scale)

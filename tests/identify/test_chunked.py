@@ -13,14 +13,15 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from drivegain.identify import cases, mlmodel
+from drivegain.identify import cases, design, mlmodel
 from drivegain.identify.autocov import LaggedSums
 from drivegain.identify.crossval import split_factors, split_runs
 from drivegain.identify.design import ls_transform, make_design
 from drivegain.identify.eiv import eiv_test
 from drivegain.identify.hac import LongRunSum, bartlett_lag, long_run_covariance, sandwich
-from drivegain.identify.ml import least_squares, ml_fit
+from drivegain.identify.ml import ml_fit
 from drivegain.identify.mlmodel import Whitening, ls_rows, run_arrays, whitened_block
+from drivegain.identify.mlstart import least_squares
 from drivegain.identify.prepare import _compact
 from drivegain.identify.weighting import joint_sigma
 
@@ -240,3 +241,73 @@ def test_a_fit_without_covariance_has_the_same_estimate(world, pair) -> None:
     np.testing.assert_array_equal(bare.wls.x, full.wls.x)
     assert bare.relative_error == full.relative_error
     assert np.isnan(bare.base_std).all() and bare.lag == 0
+
+
+@pytest.mark.parametrize("block", [37, 4096])
+def test_factors_of_the_nonzero_columns_are_those_of_the_whole_block(pair, monkeypatch, block):
+    """R_j of the columns of D_j that may be non-zero, in row blocks: R_jᵀR_j = D_jᵀD_j, and
+    upper triangular (the unloaded run's payload columns, the other joints' currents and the
+    links before joint j are left out)."""
+    monkeypatch.setattr(design, "FACTOR_BLOCK", block)
+    for d in pair:
+        factors = d.factors()
+        assert factors.shape == (d.n, d.m, d.m)
+        for j in range(d.n):
+            whole = d.block(j)
+            gram = whole.T @ whole
+            np.testing.assert_array_equal(np.triu(factors[j]), factors[j])
+            np.testing.assert_allclose(
+                factors[j].T @ factors[j], gram, rtol=0, atol=1e-12 * np.abs(gram).max()
+            )
+
+
+def test_design_products_equal_those_of_its_blocks(pair) -> None:
+    """D_j c for every joint, and Σ_j w_kj D_j,k for every sample, without building D_j."""
+    rng = np.random.default_rng(5)
+    for d in pair:
+        coef = rng.standard_normal(d.m)
+        w = rng.standard_normal((d.rows, d.n))
+        by_joint = d.dot(coef)
+        weighted = d.tdot(w)
+        expected = sum(w[:, j : j + 1] * d.block(j) for j in range(d.n))
+        for j in range(d.n):
+            want = d.block(j) @ coef
+            np.testing.assert_allclose(
+                by_joint[:, j], want, rtol=0, atol=1e-12 * np.abs(want).max()
+            )
+        np.testing.assert_allclose(weighted, expected, rtol=0, atol=1e-12 * np.abs(expected).max())
+
+
+def test_long_run_sums_merge_as_if_summed_together() -> None:
+    rng = np.random.default_rng(6)
+    runs = [_ar_series(rng, n, 3, 0.7) for n in (200, 50)]
+    together, first, second = LongRunSum(3, 8), LongRunSum(3, 8), LongRunSum(3, 8)
+    for s in runs:
+        together.add(s)
+        together.end_run()
+    first.add(runs[0])
+    first.end_run()
+    second.add(runs[1])
+    second.end_run()
+    first.merge(second)
+    np.testing.assert_allclose(first.meat(), together.meat(), rtol=1e-13)
+
+
+def test_eiv_sums_of_the_covariance_pass_equal_the_tests_own_pass(world, pair) -> None:
+    """ml_fit(influence=True) sums the test's scores with its covariance (runs in blocks, maybe
+    in a child); the test from them equals the test's own pass over the samples."""
+    a, b = pair
+    fit = ml_fit(a, b, world.payload, influence=True)
+    assert fit.linear is not None and fit.influence is not None
+    runs = [run_arrays(d, world.payload) for d in pair]
+    kt = np.asarray(a.kt, float)
+    own = eiv_test(fit, a, b, world.payload, ls=least_squares(runs, kt))  # not fit.linear
+    fused = eiv_test(fit, a, b, world.payload)
+    np.testing.assert_array_equal(fused.ls_gains, own.ls_gains)
+    np.testing.assert_allclose(fused.statistic, own.statistic, rtol=1e-10)
+    np.testing.assert_allclose(fused.ls_std, own.ls_std, rtol=1e-10)
+    np.testing.assert_allclose(fused.difference_std, own.difference_std, rtol=1e-10)
+    # and the fit itself is the one without the test's sums
+    plain = ml_fit(a, b, world.payload)
+    np.testing.assert_array_equal(plain.gains, fit.gains)
+    np.testing.assert_array_equal(plain.covariance, fit.covariance)

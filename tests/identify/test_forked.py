@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 from drivegain.errors import IdentificationError, InputError
-from drivegain.identify import forked, procedure
+from drivegain.identify import crossval, forked, procedure
+from drivegain.identify.design import make_design
 from drivegain.identify.procedure import Options, Problem, run_procedure
 
 #: A fork is possible here at all (the suite's own threads aside, see ``fork_allowed``).
@@ -76,11 +77,12 @@ def test_forked_fits_equal_fits_in_turn(world, noisy_run, monkeypatch, fork_allo
     monkeypatch.setattr(procedure, "PARALLEL_EQUATIONS", 0)
     monkeypatch.setattr(forked, "start", start)
     in_children = run_procedure(problem, Options())
-    # Case 1, the reduction of run a for each κ, the covariance's run a, then the other
-    # friction form
-    assert children[0] == "Case 1 fit" and children[-1] == "friction forms"
-    assert children[-2] == "maximum-likelihood covariance"
-    assert len(children) > 3 and set(children[1:-2]) == {"maximum-likelihood reduction"}
+    # Run a's cross-validation factors, Case 1, the least-squares start (while both runs are
+    # reduced at κ = 0 here), the reduction of run a at κ̂, the covariance's run a, then the
+    # other friction form
+    assert children[:3] == ["cross-validation factors", "Case 1 fit", "least-squares start"]
+    assert children[-2:] == ["maximum-likelihood covariance", "friction forms"]
+    assert len(children) > 5 and set(children[3:-2]) == {"maximum-likelihood reduction"}
     assert len(in_children.forms) == 2
     _assert_same(in_children, in_turn, "result")
 
@@ -154,3 +156,34 @@ def test_cancel_ends_a_child_that_ignores_sigterm(fork_allowed: None) -> None:
     # Not a timing assertion: the bound is minutes for a step that takes milliseconds; failing
     # it means cancel would have waited forever.
     assert done.wait(120.0), "cancel did not end the child"
+
+
+@needs_fork
+def test_factors_split_in_a_child_equal_those_in_turn(
+    world, noisy_run, monkeypatch, fork_allowed
+) -> None:
+    rng = np.random.default_rng(42)
+    form = world.robot.wrist_friction
+    designs = [
+        make_design(
+            noisy_run(k, pay, rng, duration=6.0, label=f"r{k}"),
+            world.bases[form],
+            form,
+            world.robot,
+        )
+        for k, pay in ((0, None), (1, world.payload))
+    ]
+    in_turn = crossval.split_factors(designs)
+    children: list[str] = []
+    real_start = forked.start
+
+    def start(what, fn, *, parallel):  # type: ignore[no-untyped-def]
+        pending = real_start(what, fn, parallel=parallel)
+        if pending.forked:
+            children.append(what)
+        return pending
+
+    monkeypatch.setattr(forked, "start", start)
+    in_child = crossval.split_factors(designs, parallel=True)
+    assert children == ["cross-validation factors"]
+    _assert_same(in_child, in_turn, "factors")

@@ -9,6 +9,7 @@ import os
 from pathlib import Path
 
 import pytest
+from mcap.reader import make_reader
 
 from drivegain.cli import main
 from drivegain.config import resource_path
@@ -87,7 +88,12 @@ def test_a_corrupt_log_read_by_a_worker_is_named_and_nothing_is_written(
 ) -> None:
     bad = tmp_path / "bad.mcap"
     data = bytearray(logs["a"].read_bytes())
-    data[len(data) // 2 : len(data) // 2 + 64] = b"\xff" * 64  # inside a compressed chunk
+    with logs["a"].open("rb") as fh:
+        summary = make_reader(fh).get_summary()
+    assert summary is not None
+    chunk = summary.chunk_indexes[len(summary.chunk_indexes) // 2]
+    middle = chunk.chunk_start_offset + chunk.chunk_length // 2
+    data[middle : middle + 64] = b"\xff" * 64  # inside a compressed chunk
     bad.write_bytes(bytes(data))
     out = tmp_path / "out"
     assert main(_argv(logs, out, unloaded=bad)) == 2

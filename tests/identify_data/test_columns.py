@@ -145,6 +145,25 @@ class _Tampered(ColumnBuffer):
         return super().take()
 
 
+def test_a_damaged_message_index_leaves_the_json_messages_to_read(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    out = tmp_path / "run.mcap"
+    s = write_mixed(out, n=2 * BLOCK_ROWS, flush_at=0)
+    data = bytearray(out.read_bytes())
+    at = len(b"\x89MCAP0\r\n")
+    while data[at] != 0x07:  # the first message index record
+        at += 9 + struct.unpack_from("<Q", data, at + 1)[0]
+    data[at + 9 + 6 + 8 : at + 9 + 6 + 16] = struct.pack("<Q", 3)  # first entry's offset
+    out.write_bytes(bytes(data))
+    with caplog.at_level(logging.WARNING, logger=logreader.__name__):
+        got = read_run(out)
+    assert_same(got, read_json(out))
+    assert np.array_equal(got.position, s["position"])
+    (record,) = caplog.records
+    assert "chunk offset 3" in record.getMessage()
+
+
 @pytest.mark.parametrize(
     "how",
     [
