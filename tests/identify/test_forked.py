@@ -52,6 +52,21 @@ def _assert_same(x: Any, y: Any, where: str) -> None:
         assert x == y, where
 
 
+def _record_children(monkeypatch: pytest.MonkeyPatch) -> list[str]:
+    """From now on, what each forked child computes (its ``what``), in order of start."""
+    children: list[str] = []
+    real_start = forked.start
+
+    def start(what, fn, *, parallel):  # type: ignore[no-untyped-def]
+        pending = real_start(what, fn, parallel=parallel)
+        if pending.forked:
+            children.append(what)
+        return pending
+
+    monkeypatch.setattr(forked, "start", start)
+    return children
+
+
 @needs_fork
 def test_forked_fits_equal_fits_in_turn(world, noisy_run, monkeypatch, fork_allowed) -> None:
     rng = np.random.default_rng(41)
@@ -65,17 +80,8 @@ def test_forked_fits_equal_fits_in_turn(world, noisy_run, monkeypatch, fork_allo
     monkeypatch.setattr(procedure, "PARALLEL_EQUATIONS", 10**12)
     in_turn = run_procedure(problem, Options())
 
-    children: list[str] = []
-    real_start = forked.start
-
-    def start(what, fn, *, parallel):  # type: ignore[no-untyped-def]
-        pending = real_start(what, fn, parallel=parallel)
-        if pending.forked:
-            children.append(what)
-        return pending
-
     monkeypatch.setattr(procedure, "PARALLEL_EQUATIONS", 0)
-    monkeypatch.setattr(forked, "start", start)
+    children = _record_children(monkeypatch)
     in_children = run_procedure(problem, Options())
     # Run a's cross-validation factors, Case 1, the least-squares start (while both runs are
     # reduced at κ = 0 here), the reduction of run a at κ̂, the covariance's run a, then the
@@ -174,16 +180,7 @@ def test_factors_split_in_a_child_equal_those_in_turn(
         for k, pay in ((0, None), (1, world.payload))
     ]
     in_turn = crossval.split_factors(designs)
-    children: list[str] = []
-    real_start = forked.start
-
-    def start(what, fn, *, parallel):  # type: ignore[no-untyped-def]
-        pending = real_start(what, fn, parallel=parallel)
-        if pending.forked:
-            children.append(what)
-        return pending
-
-    monkeypatch.setattr(forked, "start", start)
+    children = _record_children(monkeypatch)
     in_child = crossval.split_factors(designs, parallel=True)
     assert children == ["cross-validation factors"]
     _assert_same(in_child, in_turn, "factors")
