@@ -298,6 +298,13 @@ class SimulatedCell(Running):
         with self._lock:
             return list(self._fault_log)
 
+    @property
+    def dropped_s(self) -> float:
+        """Simulated time the realtime clock has dropped because the machine fell behind, s
+        (0 in lockstep and once stopped)."""
+        integrator = self._integrator
+        return 0.0 if integrator is None else integrator.dropped_s
+
     def joint_torque_history(self) -> SimHistory:
         """The simulated truth at every SYNC so far (the last ``history_s`` seconds).
 

@@ -143,14 +143,18 @@ def test_realtime_clock_follows_the_wall_clock(tx40, channel, rig_factory):
             next_t += PERIOD
             time.sleep(max(0.0, next_t - time.monotonic()))
         history = rig.cell.joint_torque_history()
+        dropped = rig.cell.dropped_s
     sim = history.time_s
     assert len(sim) == len(samples)  # one row per SYNC answered
     assert np.all(np.diff(sim) > 0)  # the simulated clock advances monotonically
     # It went on through the pause: the master received SYNC 30's answer before it slept 0.1 s
     # and sent SYNC 31 after, so the drives' clock read the wall clock at least 0.1 s apart (to
     # an internal step, and the period computed ahead); a lockstep clock would show one period.
+    # Time the physics dropped because the machine fell behind (counted, and logged) is the
+    # only way for the simulated clock to advance less than the wall clock: it is added back,
+    # so the check does not depend on the machine keeping up.
     # Timing figures (lag, jitter) are the benchmark's: python benchmarks/bench_acquire.py.
-    assert sim[31] - sim[30] > 0.1 - PERIOD - rig.cell.dt
+    assert sim[31] - sim[30] + dropped > 0.1 - PERIOD - rig.cell.dt
 
 
 def test_quick_stop_brings_a_moving_robot_to_rest(tx40, channel, rig_factory):
