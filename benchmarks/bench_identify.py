@@ -13,6 +13,8 @@ so runs on different machines compare. Logs are written to a temporary folder fi
 
 Usage: python benchmarks/bench_identify.py [--quick] [--keep DIR]
        python benchmarks/bench_identify.py --study SEEDS   (coverage and σ studies)
+       python benchmarks/bench_identify.py --read [--keep DIR]   (read_run of a 600 s, 1 kHz log
+           through its /joint_states/columns blocks beside its JSON messages, same process)
        python benchmarks/bench_identify.py --baseline-ref [REF] [--quick] [--repeats K]
            whole ``drivegain identify`` commands of this tree beside those of REF (default
            c03ea6b, the release before issue 19), installed in a temporary venv by the
@@ -388,6 +390,50 @@ def compare_with_baseline(ref: str, work: Path, quick: bool, repeats: int) -> No
                 print(comparison_line(f"    now {' '.join([*mine, '--no-plots'])}", fast, then))
 
 
+def read_comparison(work: Path, repeats: int) -> None:
+    """``read_run`` of a 600 s, 1 kHz log through its ``/joint_states/columns`` blocks beside
+    the same file read from its JSON messages alone (the baseline, same process, alternated)."""
+    import os
+
+    from drivegain.formats import logreader
+
+    log = work / "unloaded-600s-1000Hz.mcap"
+    if not log.exists():
+        print("writing the 2 x 600 s at 1 kHz logs (not timed)...", flush=True)
+        log, _ = _write_sim_logs(work, 600.0, 1000.0, seed=600)
+
+    def from_json() -> logreader.RunLog:
+        with log.open("rb") as fh:
+            size = os.fstat(fh.fileno()).st_size
+            return logreader._read_stream(fh, size, log, None, columns=False)
+
+    best = {"blocks": np.inf, "json": np.inf}
+    runs = {}
+    for _ in range(repeats):
+        for name, fn in (("blocks", lambda: logreader.read_run(log)), ("json", from_json)):
+            t0 = time.perf_counter()
+            runs[name] = fn()
+            best[name] = min(best[name], time.perf_counter() - t0)
+    same = all(
+        np.array_equal(getattr(runs["blocks"], k), getattr(runs["json"], k), equal_nan=True)
+        for k in (
+            "cycle",
+            "t",
+            "log_time_ns",
+            "position",
+            "current_reference",
+            "current",
+            "setpoint",
+        )
+    )
+    n = runs["blocks"].t.size
+    print(
+        f"read_run, {n} messages, best of {repeats}: through the blocks {best['blocks']:.2f} s, "
+        f"from the JSON messages {best['json']:.2f} s ({best['json'] / best['blocks']:.1f}x); "
+        f"identical arrays: {same}; file {log.stat().st_size / 1e6:.0f} MB"
+    )
+
+
 def _same_gains(a: Path, b: Path) -> bool:
     try:
         ga = [g["value"] for g in json.loads((a / "report.json").read_text())["gains"]]
@@ -409,11 +455,21 @@ def main() -> None:
         metavar="SEEDS",
         help="instead: coverage and σ studies over SEEDS noise seeds",
     )
+    parser.add_argument(
+        "--read",
+        action="store_true",
+        help="instead: reading a 600 s, 1 kHz log through its column blocks and from its JSON",
+    )
     add_options(parser, "whole commands of this tree")
     parser.add_argument("--child", nargs="+", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
         _child(args.child)
+        return
+    if args.read:
+        work = args.keep or Path(tempfile.mkdtemp(prefix="bench-identify-"))
+        work.mkdir(parents=True, exist_ok=True)
+        read_comparison(work, max(args.repeats, 3))
         return
     if args.baseline_ref:
         work = args.keep or Path(tempfile.mkdtemp(prefix="bench-identify-"))
