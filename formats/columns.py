@@ -30,7 +30,8 @@ __all__ = ["BLOCK_ROWS", "SPOT_EVERY", "VERSION", "ColumnBuffer", "ColumnCheck",
 #: Rows per block: a block of six joints is then 55 kB, so a chunk (1 MiB) is not stretched much
 #: by the message that closes it; large enough that a block's fixed costs vanish.
 BLOCK_ROWS = 256
-#: The layout of a block's map; a reader skips the channel when it does not know the version.
+#: The layout of a block's map; a reader that does not know a block's version (or finds keys it
+#: does not know) reads the JSON messages instead.
 VERSION = 1
 _I8 = np.dtype("<i8")
 _F8 = np.dtype("<f8")
