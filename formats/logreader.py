@@ -128,7 +128,7 @@ class _Listing:
     indexed: bool
 
 
-def _listed_messages(fh: IO[bytes], size: int) -> _Listing | None:
+def _summary_listing(fh: IO[bytes], size: int) -> _Listing | None:
     """What a finished file's summary lists, else None."""
     if not _finished(fh, size):
         return None  # no closing magic: cut file, no summary
@@ -214,7 +214,7 @@ def _read_stream(
     fh: IO[bytes], size: int, p: Path, n_joints: int | None, *, columns: bool
 ) -> RunLog:
     finished = _finished(fh, size)
-    listing = _listed_messages(fh, size)
+    listing = _summary_listing(fh, size)
     counts = None if listing is None else listing.counts
     listed = None if counts is None else counts.get(JOINT_STATES, 0)
     # A message takes more than 16 bytes even compressed: a larger count is not to be trusted.
@@ -373,13 +373,15 @@ def _take_chunk(
 ) -> None:
     """Note a chunk's JSON messages in ``check``, store its blocks' rows, keep its events."""
     try:
+        if chunk.damaged is not None:
+            raise ValueError(chunk.damaged)
         js = chunk.entries.get(_JS)
         if js is not None:
-            check.add(js[:, 0], lambda i: chunk.message(int(js[i, 1]), int(js[i, 0])))
+            check.add(js[:, 0], lambda i: chunk.message(_JS, int(js[i, 1]), int(js[i, 0])))
         for log_time, offset in chunk.entries.get(_COL, ()):
-            parser.add_columns(decode_block(chunk.message(int(offset), int(log_time))))
+            parser.add_columns(decode_block(chunk.message(_COL, int(offset), int(log_time))))
         for log_time, offset in chunk.entries.get(_EV, ()):
-            events[0].append(chunk.message(int(offset), int(log_time)))
+            events[0].append(chunk.message(_EV, int(offset), int(log_time)))
             events[1].append(int(log_time))
     except ValueError as exc:
         raise _ColumnsUnusable(str(exc)) from None

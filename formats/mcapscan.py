@@ -71,16 +71,29 @@ class IndexedChunk:
     data
         The chunk's records, uncompressed.
     entries
-        Channel kind -> (k, 2) uint64 array of (log time ns, offset in ``data``) of the kind's
-        messages, in file order.
+        Channel kind -> (k, 2) uint64 array of (log time ns, offset in ``data``) of the
+        messages of the kind's channels, in file order.
+    damaged
+        Why a message index of the chunk could not be read, or None. No reader needs the
+        indexes, so this is not corruption of the data: the caller reads the chunk otherwise.
     """
 
     def __init__(self, data: bytes):
         self.data = data
         self.entries: dict[int, np.ndarray] = {}
+        self.damaged: str | None = None
+        self._channels: dict[int, set[int]] = {}  # kind -> its channels' ids
 
-    def message(self, offset: int, log_time: int) -> bytes:
-        """The data of the message record at ``offset``, which must have ``log_time``.
+    def add(self, kind: int, channel_id: int, entries: np.ndarray) -> None:
+        """Add the (k, 2) entries of one channel's message index to ``kind``'s."""
+        if kind in self.entries:  # another channel of the same kind: one file order for both
+            entries = np.concatenate([self.entries[kind], entries])
+        self.entries[kind] = entries[np.argsort(entries[:, 1], kind="stable")]
+        self._channels.setdefault(kind, set()).add(channel_id)
+
+    def message(self, kind: int, offset: int, log_time: int) -> bytes:
+        """The data of the message record at ``offset``, which must be on a channel of
+        ``kind`` and have ``log_time``.
 
         Raises
         ------
@@ -94,7 +107,9 @@ class IndexedChunk:
         start = offset + _RECORD_HEADER.size
         if op != Op.MESSAGE or start + length > len(data):
             raise ValueError(f"no message record at chunk offset {offset}")
-        _, _, when, _ = _MESSAGE_HEADER.unpack_from(data, start)
+        channel_id, _, when, _ = _MESSAGE_HEADER.unpack_from(data, start)
+        if channel_id not in self._channels.get(kind, ()):
+            raise ValueError(f"message at chunk offset {offset} is on another channel")
         if when != log_time:
             raise ValueError(f"message at chunk offset {offset} has another log time")
         return data[start + _MESSAGE_HEADER.size : start + length]
@@ -231,15 +246,18 @@ def _chunk_data(content: bytes) -> bytes:
 
 def _add_index(chunk: IndexedChunk, content: bytes, kinds: dict[int, int]) -> None:
     """Keep a message index record's entries if its channel has a kind."""
+    if len(content) < _INDEX_HEADER.size:
+        chunk.damaged = f"message index record of {len(content)} bytes"
+        return
     channel_id, n = _INDEX_HEADER.unpack_from(content)
     kind = kinds.get(channel_id)
     if kind is None:
         return
     if n % 16 or _INDEX_HEADER.size + n > len(content):
-        raise ValueError(f"message index of {n} bytes")
+        chunk.damaged = f"message index of channel {channel_id} holds {n} bytes of entries"
+        return
     entries = np.frombuffer(content, dtype="<u8", count=n // 8, offset=_INDEX_HEADER.size)
-    entries = entries.reshape(-1, 2)
-    chunk.entries[kind] = entries[np.argsort(entries[:, 1], kind="stable")]
+    chunk.add(kind, channel_id, entries.reshape(-1, 2))
 
 
 def _record(

@@ -145,8 +145,16 @@ class _Tampered(ColumnBuffer):
         return super().take()
 
 
+@pytest.mark.parametrize(
+    ("where", "value", "said"),
+    [
+        (6 + 8, struct.pack("<Q", 3), "chunk offset 3"),  # the first entry's offset
+        (2, struct.pack("<I", 17), "holds 17 bytes"),  # the entries' length
+    ],
+    ids=["an entry's offset", "the entries' length"],
+)
 def test_a_damaged_message_index_leaves_the_json_messages_to_read(
-    tmp_path: Path, caplog: pytest.LogCaptureFixture
+    tmp_path: Path, caplog: pytest.LogCaptureFixture, where: int, value: bytes, said: str
 ) -> None:
     out = tmp_path / "run.mcap"
     s = write_mixed(out, n=2 * BLOCK_ROWS, flush_at=0)
@@ -154,14 +162,14 @@ def test_a_damaged_message_index_leaves_the_json_messages_to_read(
     at = len(b"\x89MCAP0\r\n")
     while data[at] != 0x07:  # the first message index record
         at += 9 + struct.unpack_from("<Q", data, at + 1)[0]
-    data[at + 9 + 6 + 8 : at + 9 + 6 + 16] = struct.pack("<Q", 3)  # first entry's offset
+    data[at + 9 + where : at + 9 + where + len(value)] = value
     out.write_bytes(bytes(data))
     with caplog.at_level(logging.WARNING, logger=logreader.__name__):
         got = read_run(out)
     assert_same(got, read_json(out))
     assert np.array_equal(got.position, s["position"])
     (record,) = caplog.records
-    assert "chunk offset 3" in record.getMessage()
+    assert said in record.getMessage()
 
 
 @pytest.mark.parametrize(
@@ -206,9 +214,22 @@ def test_a_cut_file_is_read_from_its_json_messages(tmp_path: Path) -> None:
 def test_an_indexed_chunk_refuses_an_offset_that_is_not_the_message() -> None:
     from drivegain.formats.mcapscan import IndexedChunk
 
-    record = struct.pack("<BQ", 0x05, 22 + 3) + struct.pack("<HIQQ", 1, 0, 77, 77) + b"abc"
-    chunk = IndexedChunk(b"\x00" * 5 + record)
-    assert chunk.message(5, 77) == b"abc"
-    for offset, log_time in ((5, 78), (0, 77), (6, 77), (len(record), 77)):
-        with pytest.raises(ValueError):
-            chunk.message(offset, log_time)
+    def record(channel: int, data: bytes) -> bytes:
+        return (
+            struct.pack("<BQ", 0x05, 22 + len(data))
+            + struct.pack("<HIQQ", channel, 0, 77, 77)
+            + data
+        )
+
+    first, second = record(1, b"abc"), record(2, b"xyz")
+    chunk = IndexedChunk(b"\x00" * 5 + first + second)
+    at = 5 + len(first)
+    chunk.add(kind=9, channel_id=1, entries=np.array([[77, 5]], dtype=np.uint64))
+    assert chunk.message(9, 5, 77) == b"abc"
+    # a second channel of the same kind: its entries join the first's, in file order
+    chunk.add(kind=9, channel_id=2, entries=np.array([[77, at]], dtype=np.uint64))
+    assert chunk.entries[9][:, 1].tolist() == [5, at] and chunk.message(9, at, 77) == b"xyz"
+    chunk.add(kind=8, channel_id=2, entries=np.array([[77, at]], dtype=np.uint64))
+    for kind, offset, log_time in ((9, 5, 78), (9, 0, 77), (9, 6, 77), (9, 10**6, 77), (8, 5, 77)):
+        with pytest.raises(ValueError):  # (8, 5): the message there is on another channel
+            chunk.message(kind, offset, log_time)
