@@ -47,6 +47,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import math
 import resource
@@ -54,6 +55,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -160,21 +162,16 @@ _CHECKERS = (request_mod, session_mod)
 _notes: list[str] = []
 
 
+@functools.wraps(_original_check)
 def _virtual_bus_check(
-    n_nodes: int,
-    period_s: float,
-    bitrate: int,
-    *,
-    warn: float,
-    config: Path,
-    load: BusLoad | None = None,
+    n_nodes: int, period_s: float, bitrate: int, **kw: Any
 ) -> tuple[BusLoad, str | None]:
     """The session's bus-load check, with a refusal turned into a note (virtual bus only)."""
     try:
-        return _original_check(n_nodes, period_s, bitrate, warn=warn, config=config, load=load)
+        return _original_check(n_nodes, period_s, bitrate, **kw)
     except ConfigError as exc:
         _notes.append(f"bus-load check bypassed for the simulated bus: {exc.message}")
-        return (load or bus_load(n_nodes, period_s, bitrate)), None
+        return (kw.get("load") or bus_load(n_nodes, period_s, bitrate)), None
 
 
 def run_session(

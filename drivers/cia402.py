@@ -136,8 +136,37 @@ def command_towards(state: State, goal: State) -> int | None:
     return int(Command.SHUTDOWN)
 
 
-def _is(cw: int, mask: int, value: int) -> bool:
-    return cw & mask == value
+#: Controlword commands of CiA 402 as (mask, value): given when ``cw & mask == value``.
+_SHUTDOWN = (0x87, 0x06)
+_SWITCH_ON = (0x8F, 0x07)  # also "disable operation" from OPERATION_ENABLED
+_ENABLE = (0x8F, 0x0F)
+_DISABLE_VOLTAGE = (0x82, 0x00)
+_QUICK_STOP = (0x86, 0x02)
+
+#: Command-driven transitions, in the order they are tested (the masks overlap, so the order
+#: decides which command a controlword is read as).
+_TRANSITIONS: dict[State, tuple[tuple[tuple[int, int], State], ...]] = {
+    State.SWITCH_ON_DISABLED: ((_SHUTDOWN, State.READY_TO_SWITCH_ON),),
+    State.READY_TO_SWITCH_ON: (
+        (_SWITCH_ON, State.SWITCHED_ON),
+        (_ENABLE, State.OPERATION_ENABLED),
+        (_DISABLE_VOLTAGE, State.SWITCH_ON_DISABLED),
+        (_QUICK_STOP, State.SWITCH_ON_DISABLED),
+    ),
+    State.SWITCHED_ON: (
+        (_ENABLE, State.OPERATION_ENABLED),
+        (_SHUTDOWN, State.READY_TO_SWITCH_ON),
+        (_DISABLE_VOLTAGE, State.SWITCH_ON_DISABLED),
+        (_QUICK_STOP, State.SWITCH_ON_DISABLED),
+    ),
+    State.OPERATION_ENABLED: (
+        (_SWITCH_ON, State.SWITCHED_ON),
+        (_SHUTDOWN, State.READY_TO_SWITCH_ON),
+        (_DISABLE_VOLTAGE, State.SWITCH_ON_DISABLED),
+        (_QUICK_STOP, State.QUICK_STOP_ACTIVE),
+    ),
+    State.QUICK_STOP_ACTIVE: ((_DISABLE_VOLTAGE, State.SWITCH_ON_DISABLED),),
+}
 
 
 def apply_controlword(state: State, cw: int, previous_cw: int) -> State:
@@ -149,44 +178,10 @@ def apply_controlword(state: State, cw: int, previous_cw: int) -> State:
     Transitions a drive makes by itself (0, 1, 13, 14, the end of a quick stop) are the caller's.
     ``previous_cw`` detects the rising edge of the fault reset bit.
     """
-    shutdown = _is(cw, 0x87, 0x06)
-    switch_on = _is(cw, 0x8F, 0x07)
-    enable = _is(cw, 0x8F, 0x0F)
-    disable_voltage = _is(cw, 0x82, 0x00)
-    quick_stop = _is(cw, 0x86, 0x02)
     if state == State.FAULT:
         rising = bool(cw & CW_FAULT_RESET_BIT) and not previous_cw & CW_FAULT_RESET_BIT
         return State.SWITCH_ON_DISABLED if rising else state
-    if state == State.SWITCH_ON_DISABLED:
-        return State.READY_TO_SWITCH_ON if shutdown else state
-    if state == State.READY_TO_SWITCH_ON:
-        if switch_on:
-            return State.SWITCHED_ON
-        if enable:
-            return State.OPERATION_ENABLED
-        if disable_voltage or quick_stop:
-            return State.SWITCH_ON_DISABLED
-        return state
-    if state == State.SWITCHED_ON:
-        if enable:
-            return State.OPERATION_ENABLED
-        if shutdown:
-            return State.READY_TO_SWITCH_ON
-        if disable_voltage or quick_stop:
-            return State.SWITCH_ON_DISABLED
-        return state
-    if state == State.OPERATION_ENABLED:
-        if switch_on:  # disable operation
-            return State.SWITCHED_ON
-        if shutdown:
-            return State.READY_TO_SWITCH_ON
-        if disable_voltage:
-            return State.SWITCH_ON_DISABLED
-        if quick_stop:
-            return State.QUICK_STOP_ACTIVE
-        return state
-    if state == State.QUICK_STOP_ACTIVE:
-        if disable_voltage:
-            return State.SWITCH_ON_DISABLED
-        return state
+    for (mask, value), after in _TRANSITIONS.get(state, ()):
+        if cw & mask == value:
+            return after
     return state

@@ -8,8 +8,9 @@ encoder's. The recordings then go through the normal filtering and decimation pa
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -42,8 +43,8 @@ from drivegain.validation.scenarios import (
 
 
 @dataclass(frozen=True)
-class World:
-    """Everything fixed across seeds: robot, truth, payloads, trajectory, filter.
+class Tx40:
+    """The simulated TX-40 every study and test world is built on.
 
     Attributes
     ----------
@@ -55,6 +56,43 @@ class World:
         Base parameters for each coupled-wrist friction form.
     columns
         Regressor columns stored by the preparation.
+    """
+
+    robot: Robot
+    model: RobotModel
+    truth: Truth
+    payload: Payload
+    validation: Payload
+    bases: dict[WristFriction, BaseParameters]
+    columns: tuple[str, ...]
+
+    def parts(self) -> dict[str, Any]:
+        """The fields by name (not copied), to build a world that extends this one."""
+        return {f.name: getattr(self, f.name) for f in fields(Tx40)}
+
+
+def load_tx40() -> Tx40:
+    """Load the shipped TX-40 robot file, its simulation truth and both payloads."""
+    robot = load_robot(resource_path("tx40.toml"))
+    model = build_model(robot)
+    bases = bases_for_forms(model)
+    return Tx40(
+        robot=robot,
+        model=model,
+        truth=load_truth(resource_path("sim/tx40-truth.toml")),
+        payload=load_payload(resource_path("payloads/calibrated-4590g.toml"), robot.n),
+        validation=load_payload(resource_path("payloads/validation-1686g.toml"), robot.n),
+        bases=bases,
+        columns=stored_columns(robot, bases, [6]),
+    )
+
+
+@dataclass(frozen=True)
+class World(Tx40):
+    """Everything fixed across seeds: the TX-40 (:class:`Tx40`), trajectory, filter.
+
+    Attributes
+    ----------
     fourier, trajectory_json
         The shipped excitation, parsed and as the bytes of its file (attached to the logs).
     rate_hz
@@ -65,13 +103,6 @@ class World:
         Sample times (s) and the exact trajectory, (N, n): rad, rad/s, rad/s².
     """
 
-    robot: Robot
-    model: RobotModel
-    truth: Truth
-    payload: Payload
-    validation: Payload
-    bases: dict[WristFriction, BaseParameters]
-    columns: tuple[str, ...]
     fourier: FourierTrajectory
     trajectory_json: bytes
     rate_hz: float
@@ -100,24 +131,16 @@ def make_world(rate_hz: float = RATE_HZ) -> World:
     rate_hz
         Sample rate of the simulated recordings, Hz.
     """
-    robot = load_robot(resource_path("tx40.toml"))
-    model = build_model(robot)
-    bases = bases_for_forms(model)
+    tx40 = load_tx40()
     traj_path = resource_path("tx40-excitation.json")
     excitation = load_trajectory(traj_path)
-    excitation.check_robot(robot)
+    excitation.check_robot(tx40.robot)
     fourier = excitation.fourier
     t = np.arange(0.0, fourier.duration_s, 1.0 / rate_hz)
     q, qd, qdd, _ = fourier.evaluate(t)
     bandwidth = fourier.base_frequency_hz * fourier.harmonics
     return World(
-        robot=robot,
-        model=model,
-        truth=load_truth(resource_path("sim/tx40-truth.toml")),
-        payload=load_payload(resource_path("payloads/calibrated-4590g.toml"), robot.n),
-        validation=load_payload(resource_path("payloads/validation-1686g.toml"), robot.n),
-        bases=bases,
-        columns=stored_columns(robot, bases, [6]),
+        **tx40.parts(),
         fourier=fourier,
         trajectory_json=Path(str(traj_path)).read_bytes(),
         rate_hz=rate_hz,

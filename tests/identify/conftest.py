@@ -13,24 +13,20 @@ from typing import Any
 import numpy as np
 import pytest
 
-from drivegain.config import load_payload, load_robot, load_truth, resource_path
+from drivegain.config import resource_path
 from drivegain.config.payload import Payload
-from drivegain.config.robot import Robot, WristFriction
-from drivegain.config.truth import Truth
-from drivegain.dynamics.base import BaseParameters
-from drivegain.dynamics.model import RobotModel, build_model
+from drivegain.config.robot import WristFriction
 from drivegain.formats.fourier import FourierTrajectory
 from drivegain.formats.log import RunMetadata
 from drivegain.formats.logwriter import write_run
 from drivegain.identify.convert import convert_csv
 from drivegain.identify.prepare import (
     PreparedRun,
-    bases_for_forms,
     prepare_recording,
-    stored_columns,
 )
 from drivegain.identify.signal import default_filter
 from drivegain.identify.synth import SyntheticRun, exciting_sum_of_sines, simulate_run
+from drivegain.validation.world import Tx40, load_tx40
 
 #: Excitation used by the simulated runs: base frequency and harmonics (bandwidth 1 Hz).
 BASE_HZ = 0.2
@@ -45,14 +41,9 @@ LOG_TRAJECTORY = {"fourier": {"base_frequency_hz": 0.2, "a": [[0.0] * 5] * 6, "b
 
 
 @dataclass(frozen=True)
-class World:
-    robot: Robot
-    model: RobotModel
-    truth: Truth
-    payload: Payload
-    validation: Payload
-    bases: dict[WristFriction, BaseParameters]
-    columns: tuple[str, ...]
+class World(Tx40):
+    """The TX-40 with three separate excitations: runs a, b and the validation run."""
+
     excitations: tuple[FourierTrajectory, FourierTrajectory, FourierTrajectory]
 
 
@@ -63,32 +54,21 @@ def _single_blas_thread(single_blas_thread: None) -> None:
 
 @pytest.fixture(scope="session")
 def world() -> World:
-    robot = load_robot(resource_path("tx40.toml"))
-    model = build_model(robot)
-    bases = bases_for_forms(model)
+    tx40 = load_tx40()
     rng = np.random.default_rng(20120701)
     # Separate trajectories for runs a, b and the validation run, as recorded in practice.
     excitations = tuple(
         exciting_sum_of_sines(
-            model,
+            tx40.model,
             rng,
             base_frequency_hz=BASE_HZ,
             harmonics=HARMONICS,
             candidates=8,
-            base=bases[WristFriction.PHYSICAL],
+            base=tx40.bases[WristFriction.PHYSICAL],
         )
         for _ in range(3)
     )
-    return World(
-        robot=robot,
-        model=model,
-        truth=load_truth(resource_path("sim/tx40-truth.toml")),
-        payload=load_payload(resource_path("payloads/calibrated-4590g.toml")),
-        validation=load_payload(resource_path("payloads/validation-1686g.toml")),
-        bases=bases,
-        columns=stored_columns(robot, bases, [6]),
-        excitations=excitations,  # type: ignore[arg-type]
-    )
+    return World(**tx40.parts(), excitations=excitations)  # type: ignore[arg-type]
 
 
 Simulate = Callable[..., PreparedRun]
