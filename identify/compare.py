@@ -38,16 +38,12 @@ from drivegain.identify.gains import (
     estimate_gains,
     identify_gains,
 )
+from drivegain.identify.weighting import EXACT_TOL, SIGMA_MAX_ITER, SIGMA_TOL, floor_sigma
 
 #: Per-joint LS: a column whose distance to the span of the previously kept columns is below
 #: this fraction of its norm (after unit scaling) is left out as not identifiable from this
 #: joint's equations alone.
 JOINT_RANK_TOL = 1e-8
-#: Global LS: σ_j iteration stops when no σ_j changes by more than this fraction.
-SIGMA_TOL = 1e-4
-SIGMA_MAX_ITER = 30
-#: Relative residual below which data count as exact (noise-free simulation).
-EXACT_TOL = 1e-10
 
 
 @dataclass(frozen=True)
@@ -425,8 +421,7 @@ def global_ls_gains(
         if sq.sum() <= EXACT_TOL**2 * y_sq:
             converged = True  # exact data: σ_j would be round-off
             break
-        new = np.sqrt(sq / (rows_joint * (1.0 - k / rows_total)))
-        new = np.maximum(new, max(float(new.max()) * 1e-9, 1e-300))
+        new = floor_sigma(np.sqrt(sq / (rows_joint * (1.0 - k / rows_total))))
         change = float(np.max(np.abs(new / sigma - 1.0)))
         sigma = new
         it += 1

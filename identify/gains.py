@@ -24,8 +24,8 @@ from drivegain.identify.eiv import EIVTest, eiv_test
 from drivegain.identify.estimate import ScaleError
 from drivegain.identify.ml import MLFit, ml_fit
 from drivegain.identify.mlmodel import run_arrays
-from drivegain.identify.weighting import joint_sigma
-from drivegain.identify.wtls import SIGMA_MAX_ITER, WTLSFit, wtls_covariance, wtls_fit
+from drivegain.identify.weighting import SIGMA_MAX_ITER, joint_sigma
+from drivegain.identify.wtls import WTLSFit, wtls_covariance, wtls_fit
 
 #: α grid (the V columns' weight): log-spaced, refined around the best point.
 DEFAULT_ALPHA_GRID = tuple(float(a) for a in np.logspace(-4, 3, 15))

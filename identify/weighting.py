@@ -18,6 +18,14 @@ import numpy as np
 from drivegain.identify.design import Design
 from drivegain.identify.estimate import group_sigma_from_factor, r_factor
 
+#: σ_j iteration (IDIM-WTLS and the global LS it is compared with): stop when no σ_j changes by
+#: more than this fraction, or after this many re-estimates.
+SIGMA_TOL = 1e-4
+SIGMA_MAX_ITER = 30
+#: Relative residual below which data count as exact (noise-free simulation): σ_j would be
+#: round-off, so it is not re-estimated.
+EXACT_TOL = 1e-10
+
 
 def joint_sigma(
     designs: Sequence[Design], factors: Sequence[np.ndarray], transforms: Sequence[np.ndarray]

@@ -28,13 +28,13 @@ from drivegain.identify.estimate import (
     tls_from_factor,
     tls_scores,
 )
-from drivegain.identify.weighting import drive_noise_weights, floor_sigma
-
-#: σ_j iteration: stop when no σ_j changes by more than this fraction.
-SIGMA_TOL = 1e-4
-SIGMA_MAX_ITER = 30
-#: Relative error norm below which data count as exact (noise-free simulation).
-EXACT_TOL = 1e-10
+from drivegain.identify.weighting import (
+    EXACT_TOL,
+    SIGMA_MAX_ITER,
+    SIGMA_TOL,
+    drive_noise_weights,
+    floor_sigma,
+)
 
 
 @dataclass(frozen=True)
