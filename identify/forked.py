@@ -29,9 +29,13 @@ U = TypeVar("U")
 
 
 def fork_is_safe() -> bool:
-    """Whether a child may be forked here: ``fork`` exists and no other thread runs (a fork
-    copies other threads' locks in whatever state they are: the child could deadlock)."""
+    """Whether a child may be forked here: ``fork`` exists, no other thread runs (a fork
+    copies other threads' locks in whatever state they are: the child could deadlock) and this
+    is not itself a forked child (a daemonic process may not have children, and the CPU its
+    child would use is the parent's)."""
     if "fork" not in multiprocessing.get_all_start_methods():
+        return False
+    if multiprocessing.current_process().daemon:
         return False
     return threading.active_count() == 1
 

@@ -142,6 +142,24 @@ def test_small_work_is_not_forked() -> None:
     assert not pending.forked and pending.result() == os.getpid()
 
 
+def _nested_start() -> tuple[bool, bool]:
+    """In a forked child: whether a second start forks again, and whether its work ran here."""
+    inner = forked.start("Case 1 fit", lambda: os.getpid(), parallel=True)
+    return inner.forked, inner.result() == os.getpid()
+
+
+@needs_fork
+def test_a_forked_child_does_not_fork_again(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A child is daemonic, and a daemonic process may not have children: its own start runs the
+    work in place instead of failing with an internal error."""
+    parent, real = os.getpid(), forked.fork_is_safe
+    # The suite's threads would make the parent say no; the child must use the real check.
+    monkeypatch.setattr(forked, "fork_is_safe", lambda: os.getpid() == parent or real())
+    outer = forked.start("friction forms", _nested_start, parallel=True)
+    assert outer.forked
+    assert outer.result() == (False, True)
+
+
 def _big_result() -> bytes:
     return bytes(16 * 2**20)  # far more than a pipe holds: the child blocks sending it
 
