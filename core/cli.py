@@ -356,6 +356,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--alpha", type=POSITIVE, help="fix the V column weight instead of searching (paper only)"
     )
+    p.add_argument(
+        "--bootstrap",
+        type=int,
+        metavar="N",
+        help="also report the gains' σ from N replicates (at least 10) of a residual block "
+        "bootstrap of the maximum-likelihood fit, beside the reported σ (ml only; each "
+        "replicate costs about one fit)",
+    )
     p.add_argument("--cutoff", type=POSITIVE, help="low-pass cut-off of positions, Hz")
     p.add_argument("--decimate", type=DECIMATE, help="decimation factor")
     p.add_argument(

@@ -19,6 +19,7 @@ import numpy as np
 
 from drivegain.config.payload import PAYLOAD_PARAMS, Payload
 from drivegain.errors import IdentificationError, InputError
+from drivegain.identify.bootstrap import BootstrapSpread, bootstrap_fit
 from drivegain.identify.design import Design, ls_transform
 from drivegain.identify.eiv import EIVTest, eiv_test
 from drivegain.identify.estimate import ScaleError
@@ -88,6 +89,9 @@ class GainIdentification:
     ml, eiv
         For ``ml``: the likelihood fit (noise model, lag) and the errors-in-variables test of
         plain least squares on the same data.
+    bootstrap
+        For ``ml`` with ``bootstrap`` replicates asked for: their spread, a second σ
+        (:mod:`~drivegain.identify.bootstrap`).
     """
 
     gains: np.ndarray
@@ -106,6 +110,7 @@ class GainIdentification:
     estimator: Estimator = Estimator.PAPER
     ml: MLFit | None = None
     eiv: EIVTest | None = None
+    bootstrap: BootstrapSpread | None = None
 
     @property
     def alpha_flatness(self) -> float | None:
@@ -136,6 +141,7 @@ def estimate_gains(
     alpha_grid: Sequence[float] = DEFAULT_ALPHA_GRID,
     step: Step = no_step,
     parallel: bool = False,
+    bootstrap: int = 0,
 ) -> GainIdentification:
     """Drive gains from an unloaded and a loaded run by the chosen estimator.
 
@@ -143,16 +149,24 @@ def estimate_gains(
     :func:`identify_gains` (``apriori`` and α serve the paper's estimator only); ``estimator``
     chooses :attr:`Estimator.ML` (default, :func:`~drivegain.identify.ml.ml_fit` and the
     errors-in-variables test) or :attr:`Estimator.PAPER` (:func:`identify_gains`);
-    ``parallel``: the runs are long enough for the ML steps to use a forked child.
+    ``parallel``: the runs are long enough for the ML steps to use a forked child;
+    ``bootstrap``: replicates of the ML fit's residual block bootstrap (0: none).
 
     Raises
     ------
     InputError
-        ``alpha`` given with the ``ml`` estimator, or not a positive number.
+        ``alpha`` given with the ``ml`` estimator, or not a positive number; ``bootstrap``
+        with the paper's estimator, or fewer replicates than
+        :data:`~drivegain.identify.bootstrap.MIN_REPLICATES`.
     IdentificationError
         The data do not determine the gains.
     """
     if estimator is Estimator.PAPER:
+        if bootstrap:
+            raise InputError(
+                "the bootstrap is of the maximum-likelihood fit: use it with --estimator ml",
+                key="bootstrap",
+            )
         return identify_gains(a, b, payload, apriori, alpha=alpha, alpha_grid=alpha_grid, step=step)
     if alpha is not None:
         raise InputError(
@@ -164,6 +178,11 @@ def estimate_gains(
     fit = ml_fit(a, b, payload, step=step, runs=runs, parallel=parallel, influence=True)
     step("errors-in-variables test")
     test = eiv_test(fit, a, b, payload, runs=runs, ls=fit.linear)
+    spread = None
+    if bootstrap:
+        step(f"bootstrap: {bootstrap} replicates")
+        # Each replicate is a whole fit: on two CPUs, half of them in a forked child.
+        spread = bootstrap_fit(a, b, payload, fit, bootstrap, runs=runs, parallel=True)
     del runs
     warnings: list[str] = []
     if not fit.converged:
@@ -188,6 +207,7 @@ def estimate_gains(
         estimator=Estimator.ML,
         ml=fit,
         eiv=test,
+        bootstrap=spread,
     )
 
 

@@ -28,6 +28,7 @@ from drivegain.dynamics.model import build_model
 from drivegain.errors import IdentificationError, InputError
 from drivegain.identify import consistent_report as cr
 from drivegain.identify.blas import limited_blas_threads
+from drivegain.identify.bootstrap import MIN_REPLICATES
 from drivegain.identify.diagnose import current_warnings, other_channel_hint
 from drivegain.identify.gains import Estimator
 from drivegain.identify.loading import load_and_prepare
@@ -79,6 +80,7 @@ class IdentifyRequest:
     consistent: cr.ConsistentRequest | None = None  # identify --consistent
     current: str = "reference"  # --current: reference or measured
     current_delay: float = 0.0  # --current-delay: age of the current samples, samples
+    bootstrap: int = 0  # --bootstrap: replicates of the ML fit's block bootstrap (0: none)
 
 
 #: what the report says when ``--no-plots`` skipped the figures
@@ -159,6 +161,18 @@ def _check_request(req: IdentifyRequest) -> None:
         raise InputError(
             "α is a weight of the paper's estimator: add --estimator paper", key="--alpha"
         )
+    if req.bootstrap:
+        if req.bootstrap < MIN_REPLICATES:
+            raise InputError(
+                f"must be at least {MIN_REPLICATES} replicates, got {req.bootstrap}",
+                key="--bootstrap",
+            )
+        if req.estimator != Estimator.ML or req.loaded is None or req.gains is not None:
+            raise InputError(
+                "the bootstrap is of the maximum-likelihood gains: it needs --loaded, the ml "
+                "estimator and no --gains",
+                key="--bootstrap",
+            )
     if req.cutoff is not None and not (math.isfinite(req.cutoff) and req.cutoff > 0):
         raise InputError(f"must be a positive number of Hz, got {req.cutoff}", key="--cutoff")
     if not (math.isfinite(req.current_delay) and 0.0 <= req.current_delay <= 1.0):
@@ -323,7 +337,11 @@ def _run_identify(req: IdentifyRequest) -> IdentifyOutcome:
         )
         task = display.progress.add_task("identification", total=None)
         options = Options(
-            friction=form, gains=given, estimator=Estimator(req.estimator), alpha=req.alpha
+            friction=form,
+            gains=given,
+            estimator=Estimator(req.estimator),
+            alpha=req.alpha,
+            bootstrap=req.bootstrap,
         )
         try:
             result = run_procedure(
@@ -439,6 +457,7 @@ def identify_command(args: argparse.Namespace) -> int:
         consistent=cr.request_from_args(args),
         current=getattr(args, "current", None) or "reference",
         current_delay=getattr(args, "current_delay", None) or 0.0,
+        bootstrap=getattr(args, "bootstrap", None) or 0,
     )
     outcome = run_identify(req)
     print(_summary(outcome, outcome.robot.joint_names))

@@ -107,6 +107,8 @@ class Options:
         Held-out fraction for the cross-validation.
     compare_forms
         Also fit the other friction form(s) and compare.
+    bootstrap
+        Replicates of the ML fit's residual block bootstrap, reported beside its σ (0: none).
     """
 
     friction: WristFriction = WristFriction.PHYSICAL
@@ -116,6 +118,7 @@ class Options:
     alpha_grid: tuple[float, ...] = DEFAULT_ALPHA_GRID
     cv_fraction: float = CV_FRACTION
     compare_forms: bool = True
+    bootstrap: int = 0
 
 
 @dataclass(frozen=True)
@@ -297,6 +300,7 @@ def _run_procedure(problem: Problem, options: Options, step: Step) -> ProcedureR
                     alpha_grid=options.alpha_grid,
                     step=step,
                     parallel=_long(main),
+                    bootstrap=options.bootstrap,
                 )
             except BaseException:
                 pending1.cancel()

@@ -6,6 +6,7 @@ from typing import Any
 
 from drivegain.config.payload import PAYLOAD_PARAMS
 from drivegain.config.robot import Robot
+from drivegain.identify.bootstrap import BootstrapSpread
 from drivegain.identify.gains import Estimator, GainIdentification
 from drivegain.identify.reportfmt import PAYLOAD_KEYS
 from drivegain.identify.reportfmt import json_num as _num
@@ -23,7 +24,7 @@ def ml_json(w: GainIdentification, robot: Robot) -> dict[str, Any]:
     """The maximum-likelihood estimator's noise model, covariance and errors-in-variables test."""
     ml, eiv = w.ml, w.eiv
     assert ml is not None and eiv is not None  # set together by the ML estimator
-    return {
+    out = {
         "noise_std": [
             {"drive": name, "std": _num(s), "unit": "A"}
             for name, s in zip(robot.joint_names, ml.noise_std, strict=True)
@@ -51,6 +52,28 @@ def ml_json(w: GainIdentification, robot: Robot) -> dict[str, Any]:
             "ls_biased": eiv.biased,
             "ls_gains": [_num(g) for g in eiv.ls_gains],
             "ls_std": [_num(s) for s in eiv.ls_std],
+        },
+    }
+    if w.bootstrap is not None:
+        out["bootstrap"] = bootstrap_json(w.bootstrap, w.payload_names, robot)
+    return out
+
+
+def bootstrap_json(b: BootstrapSpread, payload_names: list[str], robot: Robot) -> dict[str, Any]:
+    """``ml.bootstrap`` of report.json: the replicates asked for and their spread."""
+    return {
+        "method": "residual block bootstrap of the maximum-likelihood fit",
+        "replicates": b.replicates,
+        "failed": b.failed,
+        "block_samples": b.block,
+        "seed": b.seed,
+        "gain_std": [
+            {"drive": name, "std": _num(s), "unit": "N·m/A"}
+            for name, s in zip(robot.joint_names, b.gain_std, strict=True)
+        ],
+        "payload_std": {
+            PAYLOAD_KEYS[PAYLOAD_PARAMS.index(p)]: _num(s)
+            for p, s in zip(payload_names, b.payload_std, strict=True)
         },
     }
 
@@ -94,6 +117,26 @@ def ml_lines(w: GainIdentification, robot: Robot) -> list[str]:
         + ", ".join(
             f"{nm} {_g(float(g))} ± {_g(2 * float(s), 2)}"
             for nm, g, s in zip(names, eiv.ls_gains, eiv.ls_std, strict=True)
+        )
+        + ".",
+        *_bootstrap_lines(w, names),
+    ]
+
+
+def _bootstrap_lines(w: GainIdentification, names: list[str]) -> list[str]:
+    """The bootstrap σ of the gains beside the reported one, when it was asked for."""
+    b = w.bootstrap
+    if b is None:
+        return []
+    ratio = b.gain_std / w.std
+    return [
+        f"- Bootstrap ({b.replicates} replicates of the fit on its own residuals resampled in "
+        f"blocks of {b.block} samples"
+        + (f", {b.failed} failed" if b.failed else "")
+        + "), σ of the gains (N·m/A) and its ratio to the reported σ: "
+        + ", ".join(
+            f"{nm} {_g(float(s), 2)} ({float(r):.2f})"
+            for nm, s, r in zip(names, b.gain_std, ratio, strict=True)
         )
         + ".",
     ]

@@ -74,6 +74,24 @@ def test_report_json_follows_contracts_5(full_report: Path, world) -> None:
     assert len(doc["cross_validation"]["joints"]) == 6
 
 
+def test_bootstrap_sigma_is_reported_beside_the_hac_sigma(full_report, logs, tmp_path) -> None:
+    """``--bootstrap N``: the same gains and σ, plus ``ml.bootstrap`` and a Markdown line."""
+    out = tmp_path / "boot"
+    assert _identify_both(logs, "--bootstrap", "12", "--no-plots", "--out", out) == 0
+    doc = json.loads((out / "report.json").read_text())
+    plain = json.loads((full_report / "report.json").read_text())
+    assert [g["value"] for g in doc["gains"]] == [g["value"] for g in plain["gains"]]
+    assert "bootstrap" not in plain["ml"]
+    boot = doc["ml"]["bootstrap"]
+    assert boot["replicates"] == 12 and boot["failed"] == 0 and boot["block_samples"] >= 13
+    hac = np.array([g["std"] for g in doc["gains"]])
+    spread = np.array([s["std"] for s in boot["gain_std"]])
+    # Twelve replicates estimate a σ to about ±40 %: the same size, not the same number.
+    assert np.all((spread > 0.3 * hac) & (spread < 3.0 * hac)), spread / hac
+    assert set(boot["payload_std"]) == set(doc["ml"]["payload_unknown"])
+    assert "Bootstrap (12 replicates" in (out / "report.md").read_text()
+
+
 def test_markdown_and_plots(full_report: Path) -> None:
     md = (full_report / "report.md").read_text()
     for title in ("Table 3", "Table 2", "Table 4", "Table 5", "friction forms"):
@@ -137,6 +155,7 @@ def test_existing_out_folder_keeps_other_files(logs, tmp_path) -> None:
 
 def _bad_inputs(sim_log, logs, tmp: Path) -> dict[str, list[str]]:
     base = ["identify", "--robot", str(ROBOT), "--unloaded", str(logs["a"])]
+    both = [*base, "--loaded", str(logs["b"]), "--payload", str(PAYLOAD)]
     text = tmp / "notes.mcap"
     text.write_text("not a log\n")
     short = sim_log(tmp / "short.mcap", 0, None, 5, seconds=0.4)
@@ -165,6 +184,9 @@ def _bad_inputs(sim_log, logs, tmp: Path) -> dict[str, list[str]]:
             str(a_file),
         ],
         "bad payload file": [*base, "--loaded", str(logs["b"]), "--payload", str(bad_gains)],
+        "too few bootstrap replicates": [*both, "--bootstrap", "3"],
+        "bootstrap of the paper's estimator": [*both, "--estimator", "paper", "--bootstrap", "10"],
+        "bootstrap without a loaded run": [*base, "--bootstrap", "10"],
     }
 
 
