@@ -34,11 +34,6 @@ from drivegain.identify.design import Design
 from drivegain.identify.ml import MLFit, ml_fit
 from drivegain.identify.mlmodel import RunArrays, predict
 
-#: Fewest replicates accepted (a standard deviation from fewer is mostly noise: ±50 % at 10).
-MIN_REPLICATES = 10
-#: Share of replicates whose fit may fail before the bootstrap is not reported.
-MAX_FAILED_SHARE = 0.1
-
 
 @dataclass(frozen=True)
 class BootstrapSpread:
@@ -123,6 +118,12 @@ def _scale(run: RunArrays, kappa: np.ndarray) -> np.ndarray:
     if run.reversal is None:
         return np.ones_like(run.v)
     return np.sqrt(1.0 + kappa[None, :] * run.reversal)
+
+
+#: Fewest replicates accepted (a standard deviation from fewer is mostly noise: ±50 % at 10).
+MIN_REPLICATES = 10
+#: Share of replicates whose fit may fail before the bootstrap is not reported.
+MAX_FAILED_SHARE = 0.1
 
 
 def bootstrap_fit(
