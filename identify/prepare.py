@@ -472,8 +472,13 @@ def prepare_recording(
     pad = decimation_memory(f)
     at_random = _random_regressor(model, columns)
     rows, cols = np.nonzero(np.any(at_random != 0.0, axis=0))
-    # series equal at random states: each group is filtered once if equal in a window too
+    # series equal at random states: each group is filtered once if equal in a window too.
+    # A window holds the series to filter first, their repeats last (decimate_columns takes
+    # the first ones as slices): its column i is series order[i].
     same_as = first_equal(at_random[:, rows, cols])
+    order = np.argsort(same_as != np.arange(rows.size), kind="stable")
+    place = np.argsort(order)
+    same_in_window = place[same_as[order]]
     cap = WINDOW_BYTES // (8 * max(1, rows.size)) - 2 * pad
     size = max(CHUNK, 2 * pad, min(WINDOW_PADS * pad, cap))
     parts = [(0, n_samples)]
@@ -505,14 +510,14 @@ def prepare_recording(
         for s in range(start, hi, CHUNK):
             e = min(hi, s + CHUNK)
             window[s - lo : e - lo] = regressor_columns(
-                model, qf[s:e], *five_point(qf, rate_hz, s, e), columns, (rows, cols)
+                model, qf[s:e], *five_point(qf, rate_hz, s, e), columns, (rows[order], cols[order])
             )
         # Decimated sample k of this window is input sample lo + k·f (lo is a multiple of f).
         first = (a - lo) // f
         count = -(-(b - a) // f)
         k0 = a // f
-        wd = decimate_columns(window, f, same_as, source=src)
-        w_all[k0 : k0 + count] = wd[first : first + count]
+        wd = decimate_columns(window, f, same_in_window, source=src)
+        w_all[k0 : k0 + count, order] = wd[first : first + count]
         # The next window starts at b - pad: keep what this one computed from there on.
         carry_lo = max(0, b - pad)
         carry = window[carry_lo - lo :].copy() if b < n_samples else None

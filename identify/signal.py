@@ -495,15 +495,22 @@ def decimate_columns(
         As :func:`parallel_decimate`.
     """
     k = x.shape[1]
-    src = np.arange(k) if same_as is None else np.asarray(same_as, dtype=np.intp)
+    own = np.arange(k)
+    src = own if same_as is None else np.asarray(same_as, dtype=np.intp)
     shared = np.zeros(k, dtype=bool)
-    for j in np.flatnonzero(src != np.arange(k)):
-        first = src[j]
-        shared[j] = src[first] == first and bool(np.array_equal(x[:, j], x[:, first]))
+    cand = np.flatnonzero((src != own) & (src[src] == src))
+    if cand.size:
+        shared[cand] = np.all(x[:, cand] == x[:, src[cand]], axis=0)
     todo = np.flatnonzero(~shared)
     out = np.empty((decimated_length(x.shape[0], factor), k))
+    # Columns to filter that lie side by side (a caller may put the repeats last) are taken
+    # as slices of x, without a gathered copy.
+    side_by_side = todo.size > 0 and todo[-1] - todo[0] + 1 == todo.size
     for g in range(0, todo.size, SERIES_BLOCK):
-        sel = todo[g : g + SERIES_BLOCK]
+        picked = todo[g : g + SERIES_BLOCK]
+        sel: slice | np.ndarray = picked
+        if side_by_side:
+            sel = slice(int(picked[0]), int(picked[0]) + picked.size)
         (out[:, sel],) = parallel_decimate([x[:, sel]], factor, 0, source=source)
     out[:, shared] = out[:, src[shared]]
     return out

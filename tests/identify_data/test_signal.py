@@ -245,3 +245,8 @@ def test_equal_columns_are_filtered_once_with_the_same_numbers(monkeypatch) -> N
         np.testing.assert_array_equal(got, alone)  # bit for bit
         assert sum(widths) == 5 and max(widths) == 3
     np.testing.assert_array_equal(decimate_columns(x, 6), alone)
+    # the columns to filter side by side (repeats last): taken as slices, the same numbers
+    y = x[:, :7]
+    widths.clear()
+    np.testing.assert_array_equal(decimate_columns(y, 6, same_as[:7]), decimate([y], 6, 0)[0])
+    assert widths == [3, 1]
