@@ -102,8 +102,17 @@ def cross_validate(
     )
 
 
+#: Designs with their :func:`split_factors` (whole, fitted part), whose joints' factors another
+#: call may reuse.
+Factored = tuple[Sequence[Design], Sequence[np.ndarray], Sequence[np.ndarray]]
+
+
 def split_factors(
-    designs: Sequence[Design], fraction: float = CV_FRACTION, *, parallel: bool = False
+    designs: Sequence[Design],
+    fraction: float = CV_FRACTION,
+    *,
+    parallel: bool = False,
+    like: Factored | None = None,
 ) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """Per run, the R factors of all its rows and of its fitted part (:func:`split_runs`).
 
@@ -115,6 +124,11 @@ def split_factors(
     it to fork again), the first run's QRs are made in a forked child while the others' are
     made here (:mod:`.forked`; the same result either way).
 
+    ``like``: other designs of the same runs with their factors at the same ``fraction``
+    (another friction form's): a joint whose rows are the same there
+    (:meth:`.Design.same_rows`) takes its factors from them, the very numbers its own QRs
+    would give.
+
     Returns
     -------
     whole, train
@@ -122,18 +136,33 @@ def split_factors(
     """
     if not 0.0 < fraction < 1.0:
         raise InputError(f"must be in (0, 1), got {fraction}", key="cv_fraction")
+    known: list[tuple[Design, np.ndarray, np.ndarray] | None] = [None] * len(designs)
+    if like is not None:
+        ref_designs, ref_whole, ref_train = like
+        for i in range(min(len(designs), len(ref_designs))):
+            known[i] = (ref_designs[i], ref_whole[i], ref_train[i])
     pairs = forked.map_items(
         "cross-validation factors",
-        lambda d: _split_factors(d, fraction),
-        designs,
+        lambda i: _split_factors(designs[i], fraction, known[i]),
+        list(range(len(designs))),
         parallel=parallel,
     )
     return [w for w, _ in pairs], [f for _, f in pairs]
 
 
-def _split_factors(d: Design, fraction: float) -> tuple[np.ndarray, np.ndarray]:
-    """One run's whole and fitted-part R factors (:func:`split_factors`)."""
+def _split_factors(
+    d: Design, fraction: float, known: tuple[Design, np.ndarray, np.ndarray] | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """One run's whole and fitted-part R factors (:func:`split_factors`); ``known``: another
+    design of the run with its whole and fitted-part factors, reused for the joints whose rows
+    are the same."""
+    same = [] if known is None else [j for j in range(d.n) if d.same_rows(known[0], j)]
+    todo = [j for j in range(d.n) if j not in same]
     (train,), (test,) = split_runs([d], fraction)
-    fitted, held = train.factors(), test.factors()
-    whole = np.stack([r_factor(np.vstack([fitted[j], held[j]])) for j in range(d.n)])
+    fitted, held = train.factors(todo), test.factors(todo)
+    whole = np.zeros_like(fitted)
+    for j in todo:
+        whole[j] = r_factor(np.vstack([fitted[j], held[j]]))
+    if known is not None:
+        whole[same], fitted[same] = known[1][same], known[2][same]
     return whole, fitted

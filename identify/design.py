@@ -67,8 +67,10 @@ class Design:
         out[:, self.nb + 10 :] = self.run.current * self.kt[j][None, :]
         return out
 
-    def factors(self) -> np.ndarray:
+    def factors(self, joints: Sequence[int] | None = None) -> np.ndarray:
         """R factors of every joint's ``D_j``: (n, m, m), ``R_jᵀR_j = D_jᵀD_j``.
+
+        ``joints``: only those joints' factors (the others are left zero; None: all).
 
         Only the columns of ``D_j`` that are not zero by construction enter the QR (joint j's
         own regressor series, and the currents its row of kt couples): a joint's row misses
@@ -78,7 +80,7 @@ class Design:
         columns of R_j, so ``R_jᵀR_j = D_jᵀD_j`` as with the whole block.
         """
         out = np.zeros((self.n, self.m, self.m))
-        for j in range(self.n):
+        for j in range(self.n) if joints is None else joints:
             cols, series, coupled = self._nonzero_columns(j)
             scale = self.kt[j, coupled][None, :]
             # Row blocks reduced in turn with the R so far: a tall-skinny QR runs about twice
@@ -97,6 +99,15 @@ class Design:
             rj = out[j]
             rj[: cols.size, cols] = r
         return out
+
+    def same_rows(self, other: Design, j: int) -> bool:
+        """Whether joint j's rows ``D_j`` are those of ``other`` (the same run, columns and
+        coupling), so that their factors are the same numbers: two friction forms' designs
+        differ only in the joints a coupled motor's Coulomb column reaches."""
+        if self.run is not other.run or self.m != other.m or not np.array_equal(self.kt, other.kt):
+            return False
+        mine, theirs = self._nonzero_columns(j), other._nonzero_columns(j)
+        return all(np.array_equal(x, y) for x, y in zip(mine, theirs, strict=True))
 
     def _nonzero_columns(self, j: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The columns of ``D_j`` that may be non-zero (ascending), the regressor series of

@@ -245,7 +245,7 @@ def ml_fit(
         (built here otherwise).
     parallel
         The runs are long enough for the default start to be computed in a forked child while
-        both runs are reduced at κ = 0 here, and for run a to be reduced at κ̂ and its
+        the runs are reduced at κ = 0, and for run a to be reduced (at κ = 0 and at κ̂) and its
         covariance sums built in a forked child while run b's are here (:mod:`.forked`; the
         same result either way).
     influence
@@ -284,12 +284,14 @@ def ml_fit(
     linear = None
     if start is None:
         # The start's pass over the samples does not need the reduction: in a forked child
-        # while both runs are reduced here (the same results either way).
+        # while the runs are reduced, run a in another child (:func:`_reduce`) and run b
+        # here: three parts of about the same size for two CPUs rather than one part twice
+        # the others' here (the same results either way).
         pending = forked.start(
             "least-squares start", lambda: least_squares(runs, kt), parallel=parallel
         )
         try:
-            reduced = _reduce(runs, kt_inv, np.zeros(n))
+            reduced = _reduce(runs, kt_inv, np.zeros(n), parallel)
         except BaseException:
             pending.cancel()
             raise

@@ -31,9 +31,11 @@ from drivegain.identify.compact import CompactRegressor
 from drivegain.identify.reversals import reversal_zones
 from drivegain.identify.signal import (
     FilterSettings,
+    decimate_columns,
     decimation_memory,
     decimation_windows,
     derivatives,
+    first_equal,
     parallel_decimate,
 )
 
@@ -382,17 +384,12 @@ def at_rest(qd: np.ndarray) -> np.ndarray:
     return np.asarray(np.all(still, axis=1))
 
 
-def _nonzero_series(model: RobotModel, columns: Sequence[str]) -> np.ndarray:
-    """(n, c) mask of the regressor entries that are not identically zero (joint rows do not
-    depend on the links before them), from random states."""
+def _random_regressor(model: RobotModel, columns: Sequence[str]) -> np.ndarray:
+    """The regressor ``columns`` at 20 random states, (20, n, c): which entries are not
+    identically zero (joint rows do not depend on the links before them), which repeat."""
     rng = np.random.default_rng(0)
     q, qd, qdd = random_states(model, 20, rng)
-    w = regressor_columns(model, q, qd, qdd, columns)
-    return np.asarray(np.any(w != 0.0, axis=0))
-
-
-#: Regressor series decimated per call (bounds the filter's temporaries).
-_SERIES_BLOCK = 48
+    return regressor_columns(model, q, qd, qdd, columns)
 
 
 def aligned_current(current: np.ndarray, delay: float) -> np.ndarray:
@@ -473,7 +470,15 @@ def prepare_recording(
     qf = derivatives(q, rate_hz, settings, source=src)[0]
     f = settings.decimate
     pad = decimation_memory(f)
-    rows, cols = np.nonzero(_nonzero_series(model, columns))
+    at_random = _random_regressor(model, columns)
+    rows, cols = np.nonzero(np.any(at_random != 0.0, axis=0))
+    # series equal at random states: each group is filtered once if equal in a window too.
+    # A window holds the series to filter first, their repeats last (decimate_columns takes
+    # the first ones as slices): its column i is series order[i].
+    same_as = first_equal(at_random[:, rows, cols])
+    order = np.argsort(same_as != np.arange(rows.size), kind="stable")
+    place = np.argsort(order)
+    same_in_window = place[same_as[order]]
     cap = WINDOW_BYTES // (8 * max(1, rows.size)) - 2 * pad
     size = max(CHUNK, 2 * pad, min(WINDOW_PADS * pad, cap))
     parts = [(0, n_samples)]
@@ -505,16 +510,14 @@ def prepare_recording(
         for s in range(start, hi, CHUNK):
             e = min(hi, s + CHUNK)
             window[s - lo : e - lo] = regressor_columns(
-                model, qf[s:e], *five_point(qf, rate_hz, s, e), columns, (rows, cols)
+                model, qf[s:e], *five_point(qf, rate_hz, s, e), columns, (rows[order], cols[order])
             )
         # Decimated sample k of this window is input sample lo + k·f (lo is a multiple of f).
         first = (a - lo) // f
         count = -(-(b - a) // f)
         k0 = a // f
-        for g in range(0, rows.size, _SERIES_BLOCK):
-            sl = slice(g, g + _SERIES_BLOCK)
-            (wd,) = parallel_decimate([window[:, sl]], f, 0, source=src)
-            w_all[k0 : k0 + count, sl] = wd[first : first + count]
+        wd = decimate_columns(window, f, same_in_window, source=src)
+        w_all[k0 : k0 + count, order] = wd[first : first + count]
         # The next window starts at b - pad: keep what this one computed from there on.
         carry_lo = max(0, b - pad)
         carry = window[carry_lo - lo :].copy() if b < n_samples else None

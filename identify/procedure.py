@@ -323,7 +323,9 @@ def _run_procedure(problem: Problem, options: Options, step: Step) -> ProcedureR
     pending_forms = forked.start(
         "friction forms",
         lambda: {
-            f: _form_fit(problem, f, main, final_name, gains, options.cv_fraction)
+            f: _form_fit(
+                problem, f, main, final_name, gains, options.cv_fraction, (factors, train_factors)
+            )
             for f in other_forms
         },
         parallel=bool(other_forms) and _long(main),
@@ -385,14 +387,16 @@ def _form_fit(
     case: str,
     gains: np.ndarray,
     cv_fraction: float,
+    main_factors: tuple[list[np.ndarray], list[np.ndarray]],
 ) -> FormFit:
     """The final gains' fit (named ``case``) and cross-validation with another coupled-wrist
-    friction form."""
+    friction form; ``main_factors``: :func:`split_factors` of ``main``, whose joints' factors
+    serve where the form changes no column (only a coupled motor's Coulomb column differs)."""
     obp = problem.bases[form]
     od = [make_design(d.run, obp, form, problem.robot) for d in main]
     names = list(obp.names)
     # in a forked child when the other forms are fitted in parallel: no fork from here
-    factors, train_factors = split_factors(od, cv_fraction)
+    factors, train_factors = split_factors(od, cv_fraction, like=(main, *main_factors))
     fit = fit_case(case, od, gains, names, factors)
     cv = cross_validate(od, gains, names, cv_fraction, train_factors)
     return FormFit(form=form, case=fit, cv=cv)

@@ -422,7 +422,6 @@ def parallel_decimate(
         )
     out = []
     for i, x in enumerate(xs):
-        _check_finite(x, f"array {i}", source)
         flat = x.reshape(n_samples, -1)
         res = np.empty((n, flat.shape[1]))
         for c0 in range(0, flat.shape[1], _COLUMN_BLOCK):
@@ -430,7 +429,90 @@ def parallel_decimate(
             for q in stages:
                 block = _decimate_stage(block, q)
             res[:, c0 : c0 + _COLUMN_BLOCK] = block
+        # A NaN or inf in a column reaches every later output sample of the forward pass and
+        # then, backwards, every sample (IIR) or a stretch of at least 20 (FIR): checking the
+        # output, a factor smaller, finds it; the input is searched only then, for the
+        # sample to name.
+        if not np.isfinite(res).all():
+            _check_finite(x, f"array {i}", source)
         out.append(res[trim : n - trim].reshape((n - 2 * trim, *x.shape[1:])))
+    return out
+
+
+#: Columns filtered per call by :func:`decimate_columns` (bounds the filter's temporaries).
+SERIES_BLOCK = 48
+
+
+def first_equal(values: np.ndarray) -> np.ndarray:
+    """For each column of ``values`` (samples, columns), the index of the first column equal
+    to it, bit for bit (its own index when no earlier one is).
+
+    Meant for sample values of regressor series at random states: equal there, two series are
+    candidates for :func:`decimate_columns` to filter once (it compares them again).
+    """
+    out = np.arange(values.shape[1])
+    seen: dict[bytes, int] = {}
+    for k in range(values.shape[1]):
+        out[k] = seen.setdefault(np.ascontiguousarray(values[:, k]).tobytes(), k)
+    return out
+
+
+def decimate_columns(
+    x: np.ndarray,
+    factor: int,
+    same_as: np.ndarray | None = None,
+    *,
+    source: str | Path | None = None,
+) -> np.ndarray:
+    """:func:`parallel_decimate` of the columns of ``x`` (samples, columns), untrimmed, each
+    group of equal columns filtered once.
+
+    Why: about a sixth of a robot's regressor series repeat another one (the same product of
+    velocities in two parameters' columns), and filtering is most of a run's preparation.
+
+    Parameters
+    ----------
+    x
+        Samples along axis 0, (samples, columns); any unit.
+    factor
+        Decimation factor.
+    same_as
+        Per column, an earlier column it may equal (:func:`first_equal`; None: none). Column
+        k is filtered unless ``x[:, k]`` equals ``x[:, same_as[k]]`` here, bit for bit, and
+        that one is filtered itself; then it gets that column's decimated samples, the very
+        numbers its own filtering gives (the filter acts on each column alone).
+    source
+        File the data came from, named in errors.
+
+    Returns
+    -------
+    numpy.ndarray
+        (:func:`decimated_length` of the samples, columns), in ``x``'s unit.
+
+    Raises
+    ------
+    DataError
+        As :func:`parallel_decimate`.
+    """
+    k = x.shape[1]
+    own = np.arange(k)
+    src = own if same_as is None else np.asarray(same_as, dtype=np.intp)
+    shared = np.zeros(k, dtype=bool)
+    cand = np.flatnonzero((src != own) & (src[src] == src))
+    if cand.size:
+        shared[cand] = np.all(x[:, cand] == x[:, src[cand]], axis=0)
+    todo = np.flatnonzero(~shared)
+    out = np.empty((decimated_length(x.shape[0], factor), k))
+    # Columns to filter that lie side by side (a caller may put the repeats last) are taken
+    # as slices of x, without a gathered copy.
+    side_by_side = todo.size > 0 and todo[-1] - todo[0] + 1 == todo.size
+    for g in range(0, todo.size, SERIES_BLOCK):
+        picked = todo[g : g + SERIES_BLOCK]
+        sel: slice | np.ndarray = picked
+        if side_by_side:
+            sel = slice(int(picked[0]), int(picked[0]) + picked.size)
+        (out[:, sel],) = parallel_decimate([x[:, sel]], factor, 0, source=source)
+    out[:, shared] = out[:, src[shared]]
     return out
 
 

@@ -311,3 +311,17 @@ def test_eiv_sums_of_the_covariance_pass_equal_the_tests_own_pass(world, pair) -
     plain = ml_fit(a, b, world.payload)
     np.testing.assert_array_equal(plain.gains, fit.gains)
     np.testing.assert_array_equal(plain.covariance, fit.covariance)
+
+
+def test_another_forms_factors_reuse_the_joints_it_does_not_change(world, pair) -> None:
+    form = world.robot.wrist_friction
+    other = next(f for f in world.bases if f is not form)
+    od = [make_design(d.run, world.bases[other], other, world.robot) for d in pair]
+    same = [[d.same_rows(m, j) for j in range(d.n)] for d, m in zip(od, pair, strict=True)]
+    assert all(any(s) and not all(s) for s in same)  # only the coupled joints' rows differ
+    whole, fitted = split_factors(pair, 0.3)
+    own = split_factors(od, 0.3)
+    reused = split_factors(od, 0.3, like=(pair, whole, fitted))
+    for a, b in zip(own[0] + own[1], reused[0] + reused[1], strict=True):
+        np.testing.assert_array_equal(a, b)  # bit for bit
+    assert not pair[0].same_rows(pair[1], 0)  # another run's rows are never the same

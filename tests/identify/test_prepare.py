@@ -167,3 +167,28 @@ def test_five_point_windows_equal_the_whole_run_stencils() -> None:
         got_qd, got_qdd = five_point(qf, rate, start, stop)
         np.testing.assert_array_equal(got_qd, qd[start:stop])
         np.testing.assert_array_equal(got_qdd, qdd[start:stop])
+
+
+def test_repeated_series_are_filtered_once_with_the_same_numbers(world, monkeypatch) -> None:
+    rate = 200.0
+    t = np.arange(0.0, 30.0, 1.0 / rate)
+    q, _, _ = world.excitations[0].evaluate(t)[:3]
+    current = np.random.default_rng(4).normal(size=q.shape)
+    kw = dict(label="a", q=q, current=current, rate_hz=rate, settings=default_filter(rate, 1.0))
+    filtered: list[int] = []
+    decimate = prepare.decimate_columns
+
+    def counting(x, factor, same_as=None, **k):
+        out = decimate(x, factor, same_as, **k)
+        filtered.append(x.shape[1] - int(np.sum(same_as != np.arange(x.shape[1]))))
+        return out
+
+    monkeypatch.setattr(prepare, "decimate_columns", counting)
+    shared = prepare_recording(world.model, world.columns, **kw)
+    assert filtered and filtered[0] < shared.regressor.series.shape[1]  # some repeat
+    # every series filtered on its own: bit for bit the same run
+    monkeypatch.setattr(prepare, "first_equal", lambda v: np.arange(v.shape[1]))
+    alone = prepare_recording(world.model, world.columns, **kw)
+    np.testing.assert_array_equal(shared.regressor.series, alone.regressor.series)
+    np.testing.assert_array_equal(shared.current, alone.current)
+    np.testing.assert_array_equal(shared.reversal_share, alone.reversal_share)

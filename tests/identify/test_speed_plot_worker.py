@@ -4,6 +4,7 @@ are drawn in the calling process, which then raises the real error."""
 from __future__ import annotations
 
 import multiprocessing
+import os
 from pathlib import Path
 
 import numpy as np
@@ -44,3 +45,18 @@ def test_a_failing_job_is_redrawn_here_and_raises(worker, tmp_path: Path, monkey
         plots.write_plots(None, [], missing)  # type: ignore[arg-type]
     if worker is not None:  # still serving after the failure
         assert worker.run(_jobs(tmp_path))
+
+
+def test_jobs_are_split_with_a_forked_child(tmp_path: Path, monkeypatch) -> None:
+    fork = "fork" in multiprocessing.get_all_start_methods()
+    monkeypatch.setattr(plots, "fork_is_safe", lambda: fork)
+    curve = np.array([[0.5, 0.2], [1.0, 0.1], [5.0, 0.15]])
+    jobs = [(plots.draw_alpha, (curve, 1.0, tmp_path / f"alpha{k}.png")) for k in range(3)]
+    assert plots.draw_split(jobs)
+    assert all((tmp_path / f"alpha{k}.png").stat().st_size > 1000 for k in range(3))
+    missing = tmp_path / "no such folder"
+    # a failure in the child (even jobs) is reported; one here (odd jobs) raises
+    if fork and len(os.sched_getaffinity(0)) > 1:
+        assert not plots.draw_split([(plots.draw_alpha, (curve, 1.0, missing / "a.png")), jobs[1]])
+    with pytest.raises(FileNotFoundError):
+        plots.draw_split([jobs[0], (plots.draw_alpha, (curve, 1.0, missing / "b.png"))])

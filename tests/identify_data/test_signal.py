@@ -6,12 +6,15 @@ import numpy as np
 import pytest
 
 from drivegain.errors import DataError, InputError, UsageError
+from drivegain.identify import signal
 from drivegain.identify.signal import (
     FilterSettings,
+    decimate_columns,
     decimated_length,
     decimation_stages,
     default_filter,
     derivatives,
+    first_equal,
     parallel_decimate,
 )
 
@@ -202,3 +205,48 @@ def test_factor_one_only_trims() -> None:
     x = np.arange(50.0).reshape(25, 2)
     (y,) = parallel_decimate([x], 1, 3)
     np.testing.assert_array_equal(y, x[3:-3])
+
+
+@pytest.mark.parametrize("factor", [4, 17], ids=["iir", "fir"])
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_a_non_finite_sample_is_named_by_its_index(factor: int, bad: float) -> None:
+    x = np.random.default_rng(1).normal(size=(2000, 3))
+    x[1234, 2] = bad
+    with pytest.raises(DataError, match=r"array 1 is not finite \(NaN or inf\) at sample 1234"):
+        parallel_decimate([np.ones((2000, 2)), x], factor, 2, source="run.mcap")
+
+
+def test_first_equal_names_the_first_of_each_group() -> None:
+    a = np.arange(6.0)
+    v = np.column_stack([a, a + 1, a, -a, a + 1, a])
+    np.testing.assert_array_equal(first_equal(v), [0, 1, 0, 3, 1, 0])
+
+
+def test_equal_columns_are_filtered_once_with_the_same_numbers(monkeypatch) -> None:
+    rng = np.random.default_rng(2)
+    base = rng.normal(size=(3000, 4))
+    x = np.column_stack([base, base[:, 1], base[:, 3], base[:, 1], rng.normal(size=3000)])
+    x[:, -1] = base[:, 0]
+    x[1500, -1] += 1.0  # said to equal column 0, but not here: filtered on its own
+    same_as = np.array([0, 1, 2, 3, 1, 3, 1, 0])
+    widths: list[int] = []
+    decimate = signal.parallel_decimate
+
+    def counting(arrays, *a, **k):
+        widths.append(arrays[0].shape[1])
+        return decimate(arrays, *a, **k)
+
+    monkeypatch.setattr(signal, "parallel_decimate", counting)
+    monkeypatch.setattr(signal, "SERIES_BLOCK", 3)
+    for factor in (1, 6):
+        widths.clear()
+        got = decimate_columns(x, factor, same_as)
+        (alone,) = decimate([x], factor, 0)
+        np.testing.assert_array_equal(got, alone)  # bit for bit
+        assert sum(widths) == 5 and max(widths) == 3
+    np.testing.assert_array_equal(decimate_columns(x, 6), alone)
+    # the columns to filter side by side (repeats last): taken as slices, the same numbers
+    y = x[:, :7]
+    widths.clear()
+    np.testing.assert_array_equal(decimate_columns(y, 6, same_as[:7]), decimate([y], 6, 0)[0])
+    assert widths == [3, 1]
