@@ -14,6 +14,7 @@ while the caller reads and fits, and draws the figures :func:`write_plots` hands
 
 from __future__ import annotations
 
+import ctypes
 import multiprocessing
 import os
 import signal
@@ -232,6 +233,9 @@ def _label(ax: Axes, xlabel: str, ylabel: str, title: str) -> None:
     ax.legend()
 
 
+#: prctl option: the signal a process gets when its parent dies (linux/prctl.h).
+PR_SET_PDEATHSIG = 1
+
 #: A figure to draw: a drawing function of this module and its (small, picklable) arguments.
 Job = tuple[Callable[..., None], tuple[Any, ...]]
 
@@ -323,6 +327,21 @@ def _serve(conn: Any) -> None:
         conn.send("ok" if ok else "failed")
 
 
+def _die_with_parent(parent: int) -> None:
+    """Have the kernel kill this process when its parent dies (Linux ``PR_SET_PDEATHSIG``).
+
+    Why: the worker is killed, not asked, when an identification stops early (an error,
+    SIGTERM); a child left drawing would write a figure into a report folder being removed.
+    """
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(PR_SET_PDEATHSIG, int(signal.SIGKILL))
+    except (OSError, AttributeError):  # not Linux: the child ends with its figure
+        return
+    if os.getppid() != parent:  # the parent died before the request took effect
+        os._exit(1)
+
+
 def draw_split(jobs: list[Job]) -> bool:
     """Draw ``jobs``, every other one in a child forked from here; whether all were drawn.
 
@@ -334,10 +353,12 @@ def draw_split(jobs: list[Job]) -> bool:
     theirs, mine = jobs[0::2], jobs[1::2]
     if not mine or not fork_is_safe() or len(os.sched_getaffinity(0)) < 2:
         theirs, mine = [], jobs
+    parent = os.getpid()
     pid = os.fork() if theirs else 0
     if theirs and pid == 0:  # the child: its share, then out without any cleanup of ours
         code = 1
         try:
+            _die_with_parent(parent)
             for fn, args in theirs:
                 fn(*args)
             code = 0
