@@ -148,8 +148,7 @@ def bootstrap_fit(
     replicates
         Number of replicates, at least :data:`MIN_REPLICATES`.
     runs
-        The model's arrays of a and b the fit used (``[run_arrays(a, payload), run_arrays(b,
-        payload)]``).
+        The model's arrays of a and b the fit used (:func:`~.mlmodel.run_pair`).
     seed
         Seed of the replicates' streams.
     parallel
@@ -171,7 +170,7 @@ def bootstrap_fit(
             f"--bootstrap needs at least {MIN_REPLICATES} replicates, got {replicates}",
             key="bootstrap",
         )
-    theta = np.concatenate([fit.chi, fit.gains, fit.payload_unknown])
+    theta = fit.theta
     kt_inv = np.linalg.inv(np.asarray(a.kt, float))
     rows = sum(r.samples for r in runs) * a.n
     inflate = math.sqrt(rows / max(rows - theta.size, 1))

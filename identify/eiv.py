@@ -31,7 +31,7 @@ from drivegain.identify.mlmodel import (
     Whitening,
     chunks,
     ls_rows,
-    run_arrays,
+    run_pair,
     scores,
     whitened_block,
 )
@@ -144,7 +144,7 @@ def eiv_test(
     a, b, payload
         The designs and payload it was fitted on.
     runs
-        ``[run_arrays(a, payload), run_arrays(b, payload)]`` when the caller has them already.
+        :func:`~.mlmodel.run_pair` of a and b when the caller has it already.
     ls
         :func:`~drivegain.identify.mlstart.least_squares` of those runs when already computed
         (:attr:`~drivegain.identify.ml.MLFit.linear`).
@@ -156,18 +156,18 @@ def eiv_test(
     """
     from scipy.stats import chi2
 
-    nb, n = a.nb, a.n
+    nb, n = fit.nb, a.n
     if fit.influence is not None and fit.linear is not None and (ls is None or ls is fit.linear):
         # summed in the fit's covariance pass (ml_fit(influence=True))
         ls, meat = fit.linear, fit.influence
     else:
         if runs is None:
-            runs = [run_arrays(a, payload), run_arrays(b, payload)]
+            runs = run_pair(a, b, payload)
         kt = np.asarray(a.kt, float)
         kt_inv = np.linalg.inv(kt)
         if ls is None:
             ls = least_squares(runs, kt)
-        theta_ml = np.concatenate([fit.chi, fit.gains, fit.payload_unknown])
+        theta_ml = fit.theta
         whiten = Whitening(fit.noise, fit.kappa)
         sums = InfluenceSums(ls, kt, fit.lag, nb)
         for run in runs:

@@ -24,7 +24,7 @@ from drivegain.identify.design import Design, ls_transform
 from drivegain.identify.eiv import EIVTest, eiv_test
 from drivegain.identify.estimate import ScaleError
 from drivegain.identify.ml import MLFit, ml_fit
-from drivegain.identify.mlmodel import run_arrays
+from drivegain.identify.mlmodel import run_pair
 from drivegain.identify.weighting import SIGMA_MAX_ITER, joint_sigma
 from drivegain.identify.wtls import WTLSFit, wtls_covariance, wtls_fit
 
@@ -174,7 +174,7 @@ def estimate_gains(
         )
     # The model's arrays are built once for the fit and the test, and so is the least squares
     # (the fit's start, MLFit.linear); the fit's covariance pass also sums the test's scores.
-    runs = [run_arrays(a, payload), run_arrays(b, payload)]
+    runs = run_pair(a, b, payload)
     fit = ml_fit(a, b, payload, step=step, runs=runs, parallel=parallel, influence=True)
     step("errors-in-variables test")
     test = eiv_test(fit, a, b, payload, runs=runs, ls=fit.linear)
@@ -197,7 +197,7 @@ def estimate_gains(
         fit=None,
         alpha_curve=[],
         sigma_initial=None,
-        covariance=fit.covariance,
+        covariance=fit.covariance_of(),
         block=fit.lag,
         clusters=0,
         payload_names=fit.payload_names,

@@ -20,7 +20,7 @@ import dataclasses
 import functools
 import multiprocessing
 import os
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from multiprocessing.connection import Connection, wait
 from pathlib import Path
@@ -32,6 +32,7 @@ from drivegain.config.payload import Payload
 from drivegain.config.robot import WristFriction
 from drivegain.dynamics.model import RobotModel
 from drivegain.errors import IdentificationError, InputError
+from drivegain.formats.trajectory import attached_fourier
 from drivegain.identify.blas import limited_blas_threads
 from drivegain.identify.forked import fork_is_safe, send_error
 from drivegain.identify.prepare import (
@@ -39,8 +40,6 @@ from drivegain.identify.prepare import (
     bases_for_forms,
     prepare_recording,
     stored_columns,
-    trajectory_bandwidth,
-    trajectory_period,
 )
 from drivegain.identify.report import RunInfo
 from drivegain.identify.runs import LoadedRun, load_run
@@ -367,3 +366,15 @@ def _receive(
     prepared = dataclasses.replace(light.prepared, regressor=reg)
     results[i] = dataclasses.replace(light, prepared=prepared)
     return True
+
+
+def trajectory_bandwidth(attachments: Mapping[str, bytes]) -> float | None:
+    """Highest harmonic (Hz) of the excitation trajectory attached to a log, if any."""
+    fourier = attached_fourier(attachments)
+    return None if fourier is None else fourier.base_frequency_hz * fourier.harmonics
+
+
+def trajectory_period(attachments: Mapping[str, bytes]) -> float | None:
+    """Period (s) of the excitation trajectory attached to a log, if any."""
+    fourier = attached_fourier(attachments)
+    return None if fourier is None else fourier.period_s

@@ -37,7 +37,7 @@ was 10-20 % too small).
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.linalg
@@ -55,7 +55,7 @@ from drivegain.identify.mlmodel import (
     Whitening,
     chunks,
     predict,
-    run_arrays,
+    run_pair,
     split_theta,
     whitened_block,
 )
@@ -87,11 +87,16 @@ class MLFit:
     ----------
     chi, gains, payload_unknown
         Base parameters, drive gains (N·m/A), unknown payload parameters (SI).
+    coulomb, coulomb_sources
+        The reversal Coulomb coefficients, N·m (joint side), estimated beside χ, and the
+        velocity of :func:`~drivegain.identify.reversals.coulomb_sources` each belongs to
+        (:attr:`~drivegain.identify.prepare.PreparedRun.reversal_coulomb`; empty when the runs
+        have none).
     payload_names
         Names of ``payload_unknown`` (:data:`~drivegain.config.payload.PAYLOAD_PARAMS` order).
     covariance
-        Covariance of (χ, g, χ_uL) in that order, from the errors' autocovariance corrected
-        for the fit (:mod:`~drivegain.identify.autocov`).
+        Covariance of :attr:`theta` (χ, c, g, χ_uL), from the errors' autocovariance corrected
+        for the fit (:mod:`~drivegain.identify.autocov`); :meth:`covariance_of` leaves c out.
     noise
         Σ̂, the residual covariance in current units, A², (n, n).
     kappa
@@ -111,8 +116,8 @@ class MLFit:
     rows
         Scalar equations used (samples × joints over the runs).
     hessian
-        H = Σ_k J̃_kᵀ J̃_k at the estimate, the bread of the sandwich (kept for the
-        errors-in-variables test, which needs the same H).
+        H = Σ_k J̃_kᵀ J̃_k at the estimate, in :attr:`theta`'s order, the bread of the sandwich
+        (kept for the errors-in-variables test, which needs the same H).
     linear
         The linear least squares that started the search (:mod:`.mlstart`; None when the
         caller gave the start).
@@ -139,20 +144,43 @@ class MLFit:
     hessian: np.ndarray
     linear: LinearStart | None = None
     influence: np.ndarray | None = None
+    coulomb: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    coulomb_sources: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.intp))
+
+    @property
+    def theta(self) -> np.ndarray:
+        """Every unknown, in the fit's order (χ, c, g, χ_uL)."""
+        return np.concatenate([self.chi, self.coulomb, self.gains, self.payload_unknown])
+
+    @property
+    def nb(self) -> int:
+        """Unknowns before the gains in :attr:`theta` (χ and c)."""
+        return int(self.chi.size + self.coulomb.size)
 
     @property
     def std_all(self) -> np.ndarray:
-        """One standard deviation of every unknown, in (χ, g, χ_uL) order."""
+        """One standard deviation of every unknown, in :attr:`theta`'s order."""
         return np.sqrt(np.clip(np.diag(self.covariance), 0.0, None))
 
     @property
     def gain_std(self) -> np.ndarray:
-        nb, n = self.chi.size, self.gains.size
-        return self.std_all[nb : nb + n]
+        return self.std_all[self.nb : self.nb + self.gains.size]
 
     @property
     def payload_std(self) -> np.ndarray:
-        return self.std_all[self.chi.size + self.gains.size :]
+        return self.std_all[self.nb + self.gains.size :]
+
+    @property
+    def coulomb_std(self) -> np.ndarray:
+        return self.std_all[self.chi.size : self.nb]
+
+    def covariance_of(self, keep_coulomb: bool = False) -> np.ndarray:
+        """:attr:`covariance`, of (χ, g, χ_uL) only unless ``keep_coulomb`` (the marginal
+        covariance: the reversal Coulomb rows and columns left out)."""
+        if keep_coulomb or not self.coulomb.size:
+            return self.covariance
+        keep = np.r_[0 : self.chi.size, self.nb : self.covariance.shape[0]]
+        return np.asarray(self.covariance[np.ix_(keep, keep)])
 
     @property
     def noise_std(self) -> np.ndarray:
@@ -241,7 +269,7 @@ def ml_fit(
     step
         Progress callback (one line per phase).
     runs
-        ``[run_arrays(a, payload), run_arrays(b, payload)]`` when the caller has them already
+        :func:`~.mlmodel.run_pair` of a and b when the caller has it already
         (built here otherwise).
     parallel
         The runs are long enough for the default start to be computed in a forked child while
@@ -273,10 +301,11 @@ def ml_fit(
             "(give at least the payload's mass)"
         )
     if runs is None:
-        runs = [run_arrays(a, payload), run_arrays(b, payload)]
+        runs = run_pair(a, b, payload)
     kt = np.asarray(a.kt, float)
     kt_inv = np.linalg.inv(kt)
-    nb, n = a.nb, a.n
+    # θ = (χ, c, g, χ_uL): the runs' reversal Coulomb columns follow the base parameters
+    nb, n = runs[0].base_idx.size, a.n
     names = [p for p, k in zip(PAYLOAD_PARAMS, known, strict=True) if not k]
     samples = sum(r.samples for r in runs)
     floor = _round_off(np.mean(np.vstack([r.v for r in runs]) ** 2, axis=0))
@@ -410,8 +439,11 @@ def ml_fit(
     bread = sums.bread
     rows = sum(r.samples for r in runs) * n
     chi, g, chi_u = split_theta(theta, nb, n)
+    sources = runs[0].base_idx[a.nb :] - len(a.run.columns)  # columns after the named ones
     return MLFit(
-        chi=chi.copy(),
+        chi=chi[: a.nb].copy(),
+        coulomb=chi[a.nb :].copy(),
+        coulomb_sources=sources.astype(np.intp),
         gains=g.copy(),
         payload_unknown=chi_u.copy(),
         payload_names=names,

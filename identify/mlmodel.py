@@ -38,7 +38,8 @@ class RunArrays:
     regressor
         The prepared run's regressor columns, (N, n, c) (the same object, not a copy).
     base_idx
-        Its columns of the base parameters, (nb,).
+        Its columns of the base parameters, then of the reversal Coulomb coefficients
+        (:func:`run_arrays`'s ``coulomb``); the model's χ is the coefficients of all of them.
     unknown_idx
         Its columns of the unknown payload parameters, (nu,); None for the unloaded run
         (whose payload columns are zero).
@@ -90,7 +91,9 @@ class RunArrays:
         return replace(self, v=self.v[sl], regressor=self.regressor.rows(sl), reversal=rev)
 
 
-def run_arrays(d: Design, payload: Payload, reversals: bool = True) -> RunArrays:
+def run_arrays(
+    d: Design, payload: Payload, reversals: bool = True, coulomb: np.ndarray | None = None
+) -> RunArrays:
     """The ML model's view of a design (:class:`RunArrays`).
 
     Parameters
@@ -103,6 +106,10 @@ def run_arrays(d: Design, payload: Payload, reversals: bool = True) -> RunArrays
     reversals
         Give the entries their share of reversal (:attr:`RunArrays.reversal`) when the run
         has it (False: every entry the same variance, as the fit was first built).
+    coulomb
+        The reversal Coulomb columns of the run's regressor estimated after the base
+        parameters (:attr:`~.prepare.PreparedRun.reversal_coulomb`; None: the run's own, empty:
+        none). Two runs fitted together need the same (:func:`run_pair`).
     """
     rev = None
     if reversals and d.run.reversal_share is not None:
@@ -115,16 +122,28 @@ def run_arrays(d: Design, payload: Payload, reversals: bool = True) -> RunArrays
     if d.payload_idx is not None:
         unknown_idx = d.payload_idx[unknown]
         known_idx = d.payload_idx[mask]
+    cols = d.run.reversal_coulomb if coulomb is None else coulomb
+    base_idx = np.asarray(d.base_idx)
+    if cols is not None and len(cols):
+        base_idx = np.concatenate([base_idx, np.asarray(cols, dtype=base_idx.dtype)])
     return RunArrays(
         v=np.asarray(d.run.current, float),
         regressor=d.run.regressor,
-        base_idx=np.asarray(d.base_idx),
+        base_idx=base_idx,
         unknown_idx=unknown_idx,
         known_idx=known_idx,
         known_values=np.asarray(payload.values[mask], float),
         nu=int(unknown.size),
         reversal=rev,
     )
+
+
+def run_pair(a: Design, b: Design, payload: Payload, reversals: bool = True) -> list[RunArrays]:
+    """``[run_arrays(a), run_arrays(b)]`` with one θ: the reversal Coulomb columns of either
+    run (a run without one of them has a zero column there)."""
+    own = [d.run.reversal_coulomb for d in (a, b) if d.run.reversal_coulomb is not None]
+    cols = np.unique(np.concatenate(own)) if own else np.empty(0, dtype=np.intp)
+    return [run_arrays(d, payload, reversals, cols) for d in (a, b)]
 
 
 @dataclass(frozen=True)

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, replace
-from pathlib import Path
 
 import numpy as np
 
@@ -26,9 +25,8 @@ from drivegain.dynamics.model import RobotModel, build_model
 from drivegain.dynamics.params import N_INERTIAL, N_PER_JOINT, standard_names
 from drivegain.dynamics.regressor import stack_joint_major, standard_regressor
 from drivegain.errors import DataError
-from drivegain.formats.trajectory import attached_fourier
 from drivegain.identify.compact import CompactRegressor
-from drivegain.identify.reversals import reversal_zones
+from drivegain.identify.reversals import reversal_entries, reversal_signs, reversal_zones
 from drivegain.identify.signal import (
     FilterSettings,
     decimate_columns,
@@ -239,6 +237,12 @@ class PreparedRun:
         Per kept sample and drive, the share of the decimation filter's window near a reversal
         of a Coulomb velocity of that drive (:mod:`~drivegain.identify.reversals`), (N, n);
         None when not computed (exact derivatives).
+    reversal_coulomb
+        The columns of :attr:`regressor`, after those of :attr:`columns`, of the Coulomb
+        velocities' signs inside their reversal zones, one per velocity of
+        :func:`~drivegain.identify.reversals.coulomb_sources` that has one
+        (:func:`~drivegain.identify.reversals.reversal_signs`); None when not computed. Only the
+        maximum-likelihood gains use them.
     """
 
     label: str
@@ -254,6 +258,7 @@ class PreparedRun:
     period_s: float | None = None
     rest_samples: int = 0
     reversal_share: np.ndarray | None = None
+    reversal_coulomb: np.ndarray | None = None
 
     @property
     def samples(self) -> int:
@@ -280,6 +285,7 @@ class PreparedRun:
             period_s=self.period_s,
             rest_samples=self.rest_samples,
             reversal_share=None if self.reversal_share is None else self.reversal_share[sl],
+            reversal_coulomb=self.reversal_coulomb,
         )
 
 
@@ -492,12 +498,20 @@ def prepare_recording(
         qd[s : s + CHUNK] = five_point(qf, rate_hz, s, s + CHUNK)[0]
     rest = at_rest(qd)
     zones = reversal_zones(qd, model.robot)
+    signs = reversal_signs(qd, model.robot)
     del qd
-    (c_all, rest_d, zones_d) = parallel_decimate(
-        [current, rest.astype(float), zones], f, 0, source=src
+    (c_all, rest_d, zones_d, signs_d) = parallel_decimate(
+        [current, rest.astype(float), zones, signs], f, 0, source=src
     )
     nd = c_all.shape[0]
-    w_all = np.zeros((nd, rows.size))  # only the series that are not zero everywhere
+    # the reversal Coulomb series follow the regressor's, as columns after len(columns)
+    s_joint, s_source, s_weight = reversal_entries(model.robot)
+    used = np.any(signs != 0.0, axis=0)
+    del signs
+    mine = used[s_source]
+    s_joint, s_source, s_weight = s_joint[mine], s_source[mine], s_weight[mine]
+    w_all = np.zeros((nd, rows.size + s_joint.size))  # the series not zero everywhere
+    w_all[:, rows.size :] = signs_d[:, s_source] * s_weight
     carry: np.ndarray | None = None  # regressor series of the previous window's tail
     carry_lo = 0
     for a, b in parts:
@@ -537,7 +551,13 @@ def prepare_recording(
     return PreparedRun(
         label=label,
         t=t0 + keep * f / rate_hz,
-        regressor=CompactRegressor(_compact(w_all, keep), rows, cols, n, len(columns)),
+        regressor=CompactRegressor(
+            _compact(w_all, keep),
+            np.concatenate([rows, s_joint]),
+            np.concatenate([cols, len(columns) + s_source]),
+            n,
+            len(columns) + used.size,
+        ),
         columns=tuple(columns),
         current=c_all[keep],
         rate_hz=rate_hz / f,
@@ -548,6 +568,7 @@ def prepare_recording(
         period_s=period_s,
         rest_samples=int(rest.sum()),
         reversal_share=zones_d[keep],
+        reversal_coulomb=len(columns) + np.flatnonzero(used),
     )
 
 
@@ -562,20 +583,3 @@ def _compact(a: np.ndarray, keep: np.ndarray) -> np.ndarray:
         blk = keep[s : s + CHUNK]
         a[s : s + blk.size] = a[blk]
     return a[: keep.size]
-
-
-def trajectory_bandwidth(attachments: Mapping[str, bytes]) -> float | None:
-    """Highest harmonic (Hz) of the excitation trajectory attached to a log, if any."""
-    fourier = attached_fourier(attachments)
-    return None if fourier is None else fourier.base_frequency_hz * fourier.harmonics
-
-
-def trajectory_period(attachments: Mapping[str, bytes]) -> float | None:
-    """Period (s) of the excitation trajectory attached to a log, if any."""
-    fourier = attached_fourier(attachments)
-    return None if fourier is None else fourier.period_s
-
-
-def source_name(path: Path | str | None) -> str:
-    """File name used in messages."""
-    return "" if path is None else str(path)

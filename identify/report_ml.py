@@ -11,6 +11,7 @@ from drivegain.identify.gains import Estimator, GainIdentification
 from drivegain.identify.reportfmt import PAYLOAD_KEYS
 from drivegain.identify.reportfmt import json_num as _num
 from drivegain.identify.reportfmt import short as _g
+from drivegain.identify.reversals import source_names
 
 
 def estimator_name(w: GainIdentification | None) -> str:
@@ -24,6 +25,7 @@ def ml_json(w: GainIdentification, robot: Robot) -> dict[str, Any]:
     """The maximum-likelihood estimator's noise model, covariance and errors-in-variables test."""
     ml, eiv = w.ml, w.eiv
     assert ml is not None and eiv is not None  # set together by the ML estimator
+    velocities = source_names(robot)
     out = {
         "noise_std": [
             {"drive": name, "std": _num(s), "unit": "A"}
@@ -33,6 +35,10 @@ def ml_json(w: GainIdentification, robot: Robot) -> dict[str, Any]:
         "reversal_variance": [
             {"drive": name, "kappa": _num(k)}
             for name, k in zip(robot.joint_names, ml.kappa, strict=True)
+        ],
+        "reversal_coulomb": [
+            {"velocity": velocities[int(k)], "value": _num(v), "std": _num(s), "unit": "N·m"}
+            for k, v, s in zip(ml.coulomb_sources, ml.coulomb, ml.coulomb_std, strict=True)
         ],
         "rounds": ml.iterations,
         "converged": ml.converged,
@@ -83,6 +89,7 @@ def ml_lines(w: GainIdentification, robot: Robot) -> list[str]:
     ml, eiv = w.ml, w.eiv
     assert ml is not None and eiv is not None
     names = robot.joint_names
+    velocities = source_names(robot)
     verdict = (
         f"**plain least squares is biased on these data** (p = {_g(eiv.p_value, 2)} < 0.01): "
         "the currents are noisy enough that treating them as exact regressors attenuates the "
@@ -104,6 +111,16 @@ def ml_lines(w: GainIdentification, robot: Robot) -> list[str]:
         "the filter window near a reversal of one of the drive's Coulomb terms; κ "
         + ", ".join(f"{nm} {_g(float(k), 3)}" for nm, k in zip(names, ml.kappa, strict=True))
         + ' (docs/model.md, "Reversals").',
+        "- Coulomb friction near reversals, a coefficient of its own (N·m, added to the "
+        "Coulomb term's while the velocity is within its reversal zone): "
+        + (
+            ", ".join(
+                f"{velocities[int(k)]} {_g(float(v), 3)} ± {_g(float(s), 2)}"
+                for k, v, s in zip(ml.coulomb_sources, ml.coulomb, ml.coulomb_std, strict=True)
+            )
+            or "none (no velocity has a reversal zone of its own)"
+        )
+        + ".",
         "- Standard deviations: from the whitened errors' autocovariance over "
         f"{ml.lag} decimated samples, corrected for the fit (long-run variance "
         f"{_g(ml.autocov.long_run, 3)} × that of white errors"

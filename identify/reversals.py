@@ -17,6 +17,14 @@ gains an entry with share s has (1 + κ s) times the variance of one away from r
 estimated per drive from the residuals (:class:`~drivegain.identify.mlmodel.Whitening`): where
 the data show no excess κ is about 0 and every entry counts alike, where they do the entries
 near reversals count less.
+
+Down-weighting leaves a bias: the misfit is not noise but has the sign of the velocity. While a
+velocity crawls through zero the friction ramps from one side to the other instead of jumping,
+so inside the zone its mean is smaller than ``Fc`` and of the same sign as the (filtered)
+velocity. :func:`reversal_signs` gives that velocity's sign inside the zone only; as a
+regressor column of its own (a Coulomb coefficient that holds near reversals,
+:func:`reversal_entries`) it takes up the mean of the misfit, which would otherwise go to the
+gains (:attr:`~drivegain.identify.prepare.PreparedRun.reversal_coulomb`).
 """
 
 from __future__ import annotations
@@ -31,6 +39,12 @@ from drivegain.config.robot import Robot
 #: excitations (3 seeds, with a first variance model of three levels of share), 0.1 left the
 #: smallest gain errors.
 REVERSAL_FRACTION = 0.1
+#: A velocity gets a reversal Coulomb column only when its zone holds this share of the run's
+#: samples at least (fewer: the column is too short-lived to be told from the noise) ...
+MIN_ZONE_SHARE = 0.005
+#: ... and at most this share (more: the column is most of its Coulomb column, which it would
+#: then duplicate; a joint that barely moves).
+MAX_ZONE_SHARE = 0.5
 
 
 def coulomb_sources(robot: Robot) -> tuple[np.ndarray, np.ndarray]:
@@ -73,8 +87,66 @@ def reversal_zones(qd: np.ndarray, robot: Robot, fraction: float = REVERSAL_FRAC
     fraction
         A velocity below this fraction of its RMS over the run counts as reversing.
     """
-    velocity, reach = coulomb_sources(robot)
-    v = np.abs(np.asarray(qd, dtype=float) @ velocity.T)  # (N, r)
-    rms = np.sqrt(np.mean(v**2, axis=0))
-    near = v <= fraction * np.where(rms > 0.0, rms, np.inf)
+    reach = coulomb_sources(robot)[1]
+    near = _near(qd, robot, fraction)[0]
     return np.asarray((near.astype(float) @ reach.astype(float)) > 0.0, dtype=float)
+
+
+def _near(qd: np.ndarray, robot: Robot, fraction: float) -> tuple[np.ndarray, np.ndarray]:
+    """Which samples of each Coulomb velocity are near a reversal, (N, r) bool, and those
+    velocities, rad/s, (N, r)."""
+    velocity = coulomb_sources(robot)[0]
+    v = np.asarray(qd, dtype=float) @ velocity.T
+    rms = np.sqrt(np.mean(v**2, axis=0))
+    return np.abs(v) <= fraction * np.where(rms > 0.0, rms, np.inf), v
+
+
+def reversal_signs(qd: np.ndarray, robot: Robot, fraction: float = REVERSAL_FRACTION) -> np.ndarray:
+    """The sign of each Coulomb velocity where it is near a reversal, 0 elsewhere, (N, r).
+
+    Parameters
+    ----------
+    qd
+        Filtered joint velocities, rad/s, (N, n).
+    robot
+        The robot (the velocities are those of :func:`coulomb_sources`).
+    fraction
+        As :func:`reversal_zones`.
+
+    Returns
+    -------
+    numpy.ndarray
+        (N, r), -1, 0 or 1. A velocity whose zone holds less than :data:`MIN_ZONE_SHARE` or
+        more than :data:`MAX_ZONE_SHARE` of the samples gets zeros (no column).
+    """
+    near, v = _near(qd, robot, fraction)
+    share = near.mean(axis=0) if near.shape[0] else np.zeros(near.shape[1])
+    usable = (share >= MIN_ZONE_SHARE) & (share <= MAX_ZONE_SHARE)
+    return np.asarray(np.where(near & usable[None, :], np.sign(v), 0.0))
+
+
+def reversal_entries(robot: Robot) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where the reversal Coulomb column of each velocity enters the joint torques.
+
+    A velocity's friction acts on the joints it moves, in the proportions of its velocity
+    (virtual work, as in :func:`coulomb_sources`).
+
+    Returns
+    -------
+    joint, source, weight
+        (m,) each: joint torque ``joint`` gets ``weight`` times the signs of velocity
+        ``source`` (:func:`reversal_signs`) per unit of its coefficient (N·m).
+    """
+    velocity = coulomb_sources(robot)[0]
+    source, joint = np.nonzero(velocity)
+    return joint.astype(np.intp), source.astype(np.intp), velocity[source, joint]
+
+
+def source_names(robot: Robot) -> list[str]:
+    """Names of the velocities of :func:`coulomb_sources`: each joint's, then each coupled
+    motor's (``motor j5+j6``)."""
+    velocity = coulomb_sources(robot)[0]
+    names = list(robot.joint_names)
+    for row in velocity[robot.n :]:
+        names.append("motor " + "+".join(robot.joint_names[j] for j in np.flatnonzero(row)))
+    return names

@@ -32,7 +32,7 @@ from drivegain.identify.compare import (
 from drivegain.identify.design import Design, make_design
 from drivegain.identify.gains import DEFAULT_ALPHA_GRID, Estimator, estimate_gains
 from drivegain.identify.hac import bartlett_lag, long_run_covariance, sandwich
-from drivegain.identify.mlmodel import Whitening, run_arrays, scores, whitened_block
+from drivegain.identify.mlmodel import Whitening, run_pair, scores, whitened_block
 from drivegain.validation.cell import closed_loop_three
 from drivegain.validation.scenarios import (
     SCENARIOS,
@@ -114,6 +114,13 @@ def _ours_plain(a: Design, b: Design, w: World) -> GainEstimate:
     return ours_gains(plain(a), plain(b), w.payload, w.robot.apriori_gains)
 
 
+def _ours_no_coulomb(a: Design, b: Design, w: World) -> GainEstimate:
+    def without(d: Design) -> Design:
+        return replace(d, run=replace(d.run, reversal_coulomb=None))
+
+    return ours_gains(without(a), without(b), w.payload, w.robot.apriori_gains)
+
+
 def _ours_newey_west(a: Design, b: Design, w: World) -> GainEstimate:
     """Our estimate with the Newey-West σ it reported before :mod:`~drivegain.identify.autocov`.
 
@@ -123,14 +130,14 @@ def _ours_newey_west(a: Design, b: Design, w: World) -> GainEstimate:
     res = estimate_gains(a, b, w.payload, w.robot.apriori_gains, estimator=Estimator.ML)
     fit = res.ml
     assert fit is not None  # the ML branch always sets it
-    theta = np.concatenate([fit.chi, fit.gains, fit.payload_unknown])
+    theta = fit.theta
     kt_inv = np.linalg.inv(np.asarray(a.kt, float))
     whiten = Whitening(fit.noise, fit.kappa)
-    blocks = [whitened_block(theta, run_arrays(d, w.payload), kt_inv, whiten) for d in (a, b)]
+    blocks = [whitened_block(theta, r, kt_inv, whiten) for r in run_pair(a, b, w.payload)]
     lag = bartlett_lag([ew for _, ew in blocks])
     meat = long_run_covariance([scores(jw, ew) for jw, ew in blocks], lag)
     cov = sandwich(fit.hessian, meat, fit.rows, theta.size)
-    g = slice(a.nb, a.nb + a.n)
+    g = slice(fit.nb, fit.nb + a.n)
     return GainEstimate(
         method="ML",
         gains=fit.gains,
@@ -226,6 +233,16 @@ METHODS: tuple[Method, ...] = (
         _ours_plain,
         "ablation: our estimator with one variance for every entry, none apart near reversals "
         'of Coulomb friction (docs/model.md, "Reversals")',
+    ),
+    Method(
+        "ours_no_coulomb",
+        "ours, no reversal Coulomb",
+        True,
+        True,
+        True,
+        _ours_no_coulomb,
+        "ablation: our estimator without the Coulomb coefficients of its own near reversals "
+        '(docs/model.md, "Reversals")',
     ),
     Method(
         "ours_nw",

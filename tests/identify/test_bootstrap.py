@@ -15,7 +15,7 @@ from drivegain.identify import forked
 from drivegain.identify.design import make_design
 from drivegain.identify.gains import Estimator, estimate_gains
 from drivegain.identify.ml import ml_fit
-from drivegain.identify.mlmodel import run_arrays
+from drivegain.identify.mlmodel import run_pair
 
 DURATION = 24.0
 SEEDS = 12
@@ -62,7 +62,7 @@ def test_bootstrap_sigma_matches_the_spread_over_noise_seeds(world, noisy_run) -
         fit = ml_fit(a, b, world.payload)
         gains.append(fit.gains)
         if seed < 2:
-            runs = [run_arrays(a, world.payload), run_arrays(b, world.payload)]
+            runs = run_pair(a, b, world.payload)
             spread = bs.bootstrap_fit(a, b, world.payload, fit, REPLICATES, runs=runs)
             assert spread.failed == 0 and spread.estimates.shape == (REPLICATES, 6 + 9)
             boot.append(spread.gain_std)
@@ -79,7 +79,7 @@ def test_replicates_split_between_processes_give_the_same_result(
 ) -> None:
     a, b = _pair(world, noisy_run, 0, torque_noise=0.1)
     fit = ml_fit(a, b, world.payload)
-    runs = [run_arrays(a, world.payload), run_arrays(b, world.payload)]
+    runs = run_pair(a, b, world.payload)
     here = bs.bootstrap_fit(a, b, world.payload, fit, 10, runs=runs, parallel=False)
     monkeypatch.setattr(forked, "fork_is_safe", lambda: True)  # the suite's threads aside
     split = bs.bootstrap_fit(a, b, world.payload, fit, 10, runs=runs, parallel=True)

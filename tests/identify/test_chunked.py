@@ -20,7 +20,7 @@ from drivegain.identify.design import ls_transform, make_design
 from drivegain.identify.eiv import eiv_test
 from drivegain.identify.hac import LongRunSum, bartlett_lag, long_run_covariance, sandwich
 from drivegain.identify.ml import ml_fit
-from drivegain.identify.mlmodel import Whitening, ls_rows, run_arrays, whitened_block
+from drivegain.identify.mlmodel import Whitening, ls_rows, run_pair, whitened_block
 from drivegain.identify.mlstart import least_squares
 from drivegain.identify.prepare import _compact
 from drivegain.identify.weighting import joint_sigma
@@ -112,7 +112,7 @@ def _whole_least_squares(runs, kt):
 @pytest.mark.parametrize("chunk", [37, 500, 100_000])
 def test_block_least_squares_equals_the_whole_matrix_one(world, pair, monkeypatch, chunk) -> None:
     monkeypatch.setattr(mlmodel, "CHUNK", chunk)
-    runs = [run_arrays(d, world.payload) for d in pair]
+    runs = run_pair(*pair, world.payload)
     kt = np.asarray(pair[0].kt, float)
     theta, w, hessian = _whole_least_squares(runs, kt)
     ls = least_squares(runs, kt)
@@ -150,7 +150,7 @@ def test_eiv_test_equals_its_whole_matrix_form(world, pair) -> None:
     a, b = pair
     fit = ml_fit(a, b, world.payload)
     test = eiv_test(fit, a, b, world.payload)
-    runs = [run_arrays(d, world.payload) for d in pair]
+    runs = run_pair(*pair, world.payload)
     kt = np.asarray(a.kt, float)
     theta_ls, w, bread_ls = _whole_least_squares(runs, kt)
     mats = [ls_rows(r, kt) for r in runs]
@@ -159,13 +159,13 @@ def test_eiv_test_equals_its_whole_matrix_form(world, pair) -> None:
         -np.matmul(((m @ theta_ls - r.tau_known) * w**2)[:, None, :], m)[:, 0, :] @ h_ls
         for m, r in zip(mats, runs, strict=True)
     ]
-    theta = np.concatenate([fit.chi, fit.gains, fit.payload_unknown])
+    theta = fit.theta
     whiten = Whitening(fit.noise, fit.kappa)
     blocks = [whitened_block(theta, r, np.linalg.inv(kt), whiten) for r in runs]
     bread = sum(jw.reshape(-1, theta.size).T @ jw.reshape(-1, theta.size) for jw, _ in blocks)
     h_ml = np.linalg.pinv(bread, hermitian=True)
     infl_ml = [np.matmul(ew[:, None, :], jw)[:, 0, :] @ h_ml for jw, ew in blocks]
-    g = slice(a.nb, a.nb + a.n)
+    g = slice(fit.nb, fit.nb + a.n)
     cov_d = _meat_by_lags([(x - y)[:, g] for x, y in zip(infl_ls, infl_ml, strict=True)], fit.lag)
     d = theta_ls[g] - fit.gains
     stat = float(d @ np.linalg.solve(cov_d, d))
@@ -299,7 +299,7 @@ def test_eiv_sums_of_the_covariance_pass_equal_the_tests_own_pass(world, pair) -
     a, b = pair
     fit = ml_fit(a, b, world.payload, influence=True)
     assert fit.linear is not None and fit.influence is not None
-    runs = [run_arrays(d, world.payload) for d in pair]
+    runs = run_pair(*pair, world.payload)
     kt = np.asarray(a.kt, float)
     own = eiv_test(fit, a, b, world.payload, ls=least_squares(runs, kt))  # not fit.linear
     fused = eiv_test(fit, a, b, world.payload)

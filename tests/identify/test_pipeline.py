@@ -70,6 +70,10 @@ def test_report_json_follows_contracts_5(full_report: Path, world) -> None:
     assert len(ml["noise_std"]) == 6 and all(_number(s["std"]) for s in ml["noise_std"])
     assert isinstance(ml["covariance_lag_samples"], int) and ml["converged"] is True
     assert 0.0 <= ml["eiv_test"]["p_value"] <= 1.0 and ml["eiv_test"]["dof"] == 6
+    velocities = {"j1", "j2", "j3", "j4", "j5", "j6", "motor j5+j6"}
+    for c in ml["reversal_coulomb"]:
+        assert c["velocity"] in velocities and c["unit"] == "N·m"
+        assert _number(c["value"]) and _number(c["std"]) and c["std"] > 0
     assert "wtls" not in doc
     assert len(doc["cross_validation"]["joints"]) == 6
 

@@ -17,8 +17,14 @@ from drivegain.config import resource_path
 from drivegain.config.robot import load_robot
 from drivegain.identify.design import make_design
 from drivegain.identify.ml import _kappa, ml_fit
-from drivegain.identify.mlmodel import Whitening, run_arrays
-from drivegain.identify.reversals import coulomb_sources, reversal_zones
+from drivegain.identify.mlmodel import Whitening, run_arrays, run_pair
+from drivegain.identify.reversals import (
+    coulomb_sources,
+    reversal_entries,
+    reversal_signs,
+    reversal_zones,
+    source_names,
+)
 
 TX40 = load_robot(resource_path("tx40.toml"))
 
@@ -58,6 +64,61 @@ def test_zones_sit_at_the_reversals_for_the_share_arcsin_gives() -> None:
     motor6 = np.abs(qd[:, 4] + qd[:, 5])
     rms6 = math.sqrt(float(np.mean(motor6**2)))
     np.testing.assert_array_equal(zones[:, 5] > 0, motor6 <= 0.1 * rms6)
+
+
+def test_reversal_signs_are_the_velocity_s_sign_inside_its_zone_only() -> None:
+    t = np.arange(0, 20.0, 1e-3)
+    qd = np.ones((t.size, TX40.n))
+    qd[:, 0] = np.sin(2 * np.pi * 0.5 * t)  # reverses every second
+    qd[:, 1] = 0.0  # at rest all along: its zone is the whole run, no column of its own
+    qd[:, 4] = 1.0 + 0.5 * np.sin(2 * np.pi * 0.2 * t)  # joint 5 never reverses...
+    qd[:, 5] = -qd[:, 4] + 0.3 * np.sin(2 * np.pi * 0.3 * t)  # ...but motor 6 (q5 + q6) does
+    signs = reversal_signs(qd, TX40, fraction=0.1)
+    assert signs.shape == (t.size, TX40.n + 1)
+    near1 = np.abs(qd[:, 0]) <= 0.1 / math.sqrt(2)  # 0.1 RMS of a unit sine
+    np.testing.assert_array_equal(signs[:, 0], np.where(near1, np.sign(qd[:, 0]), 0.0))
+    assert near1.mean() == pytest.approx(2 / math.pi * math.asin(0.1 / math.sqrt(2)), rel=0.02)
+    assert not signs[:, 1:6].any()
+    motor6 = qd[:, 4] + qd[:, 5]
+    near6 = np.abs(motor6) <= 0.1 * math.sqrt(float(np.mean(motor6**2)))
+    np.testing.assert_array_equal(signs[:, 6], np.where(near6, np.sign(motor6), 0.0))
+
+
+def test_reversal_columns_enter_the_joints_their_velocity_moves() -> None:
+    joint, source, weight = reversal_entries(TX40)
+    velocity = coulomb_sources(TX40)[0]
+    rebuilt = np.zeros_like(velocity)
+    rebuilt[source, joint] = weight
+    np.testing.assert_array_equal(rebuilt, velocity)
+    # the joints' own on their joint; motor 6's on joints 5 and 6, as its velocity q5 + q6
+    assert sorted(joint[source == 6].tolist()) == [4, 5]
+    assert source_names(TX40) == [*TX40.joint_names, "motor j5+j6"]
+
+
+def test_without_sticking_the_reversal_coulomb_terms_are_nought(world, noisy_run) -> None:
+    """Exact tracking: the friction is Fc·sign(v) at reversals too, so each coefficient is
+    zero within its σ, and the gains move by a fraction of σ with them."""
+    rng = np.random.default_rng(29)
+    bp = world.bases[world.robot.wrist_friction]
+    runs = [
+        noisy_run(0, None, rng, duration=20.0, label="unloaded"),
+        noisy_run(1, world.payload, rng, duration=20.0, label="loaded"),
+    ]
+    a, b = (make_design(r, bp, world.robot.wrist_friction, world.robot) for r in runs)
+    assert all(r.reversal_coulomb is not None and r.reversal_coulomb.size for r in runs)
+    fit = ml_fit(a, b, world.payload, runs=run_pair(a, b, world.payload))
+    none = np.empty(0, dtype=np.intp)
+    without = ml_fit(
+        a, b, world.payload, runs=[run_arrays(d, world.payload, True, none) for d in (a, b)]
+    )
+    assert fit.coulomb.size == a.run.reversal_coulomb.size and without.coulomb.size == 0
+    assert np.all(np.abs(fit.coulomb) < 4.0 * fit.coulomb_std), fit.coulomb / fit.coulomb_std
+    assert np.all(np.abs(fit.gains - without.gains) < 0.3 * without.gain_std)
+    assert fit.chi.size == without.chi.size == a.nb
+    # the marginal covariance of (χ, g, χ_uL) is the full one without c's rows and columns
+    cov = fit.covariance_of()
+    assert cov.shape == without.covariance.shape
+    np.testing.assert_array_equal(np.sqrt(np.diag(cov))[a.nb : a.nb + a.n], fit.gain_std)
 
 
 def test_whitening_scales_each_entry_by_its_share_then_whitens() -> None:

@@ -12,7 +12,7 @@ import numpy as np
 
 from drivegain.identify.design import make_design
 from drivegain.identify.ml import ml_fit
-from drivegain.identify.mlmodel import run_arrays
+from drivegain.identify.mlmodel import run_arrays, run_pair
 from drivegain.validation.cell import closed_loop_run
 from drivegain.validation.estimators import seed_world
 from drivegain.validation.scenarios import SCENARIOS, scenario_rng
@@ -31,8 +31,9 @@ def test_entries_near_reversals_count_less_and_the_bias_goes(world: World) -> No
             closed_loop_run(w, w.payload, SCENARIO, rng, "loaded"),
         ]
         a, b = (make_design(prepare(w, r), w.base, w.form, w.robot) for r in runs)
+        none = np.empty(0, dtype=np.intp)  # the variance model alone: no reversal Coulomb
         for levels in (True, False):
-            arrays = [run_arrays(d, w.payload, levels) for d in (a, b)]
+            arrays = [run_arrays(d, w.payload, levels, none) for d in (a, b)]
             fit = ml_fit(a, b, w.payload, runs=arrays)
             errors[levels].append(fit.gains / w.truth.gains - 1.0)
             if levels:
@@ -42,3 +43,36 @@ def test_entries_near_reversals_count_less_and_the_bias_goes(world: World) -> No
     rms = {k: float(np.sqrt(np.mean(np.square(v)))) for k, v in errors.items()}
     assert rms[True] < 0.5 * rms[False], rms
     assert rms[True] < 0.01, rms
+
+
+def test_a_coulomb_coefficient_of_its_own_near_reversals_takes_up_the_stick_bias(
+    world: World,
+) -> None:
+    """The cell's drives stick, so near a reversal their friction ramps from one side to the
+    other rather than jumping: the coefficient of the velocity's sign inside its zone comes
+    out negative (less friction there than Fc), and the gains' bias shrinks."""
+    errors: dict[bool, list[np.ndarray]] = {True: [], False: []}
+    for seed in (0, 100):
+        w = seed_world(world, SCENARIO, seed)
+        rng = scenario_rng(SCENARIO, seed)
+        runs = [
+            closed_loop_run(w, None, SCENARIO, rng, "unloaded"),
+            closed_loop_run(w, w.payload, SCENARIO, rng, "loaded"),
+        ]
+        a, b = (make_design(prepare(w, r), w.base, w.form, w.robot) for r in runs)
+        none = np.empty(0, dtype=np.intp)
+        for own in (True, False):
+            arrays = (
+                run_pair(a, b, w.payload)
+                if own
+                else [run_arrays(d, w.payload, True, none) for d in (a, b)]
+            )
+            fit = ml_fit(a, b, w.payload, runs=arrays)
+            errors[own].append(fit.gains / w.truth.gains - 1.0)
+            if own:
+                assert fit.coulomb.size == 7  # every joint's velocity and motor 6's
+                z = fit.coulomb / fit.coulomb_std
+                assert np.count_nonzero(z < -3.0) >= 5 and np.all(z < 2.0), z
+    rms = {k: float(np.sqrt(np.mean(np.square(v)))) for k, v in errors.items()}
+    assert rms[True] < 0.6 * rms[False], rms
+    assert rms[True] < 0.006, rms
