@@ -15,7 +15,7 @@ import pytest
 
 from drivegain.config import resource_path
 from drivegain.config.robot import load_robot
-from drivegain.identify.design import make_design
+from drivegain.identify.design import Design, make_design
 from drivegain.identify.ml import _kappa, ml_fit
 from drivegain.identify.mlmodel import Whitening, run_arrays, run_pair
 from drivegain.identify.reversals import (
@@ -95,17 +95,23 @@ def test_reversal_columns_enter_the_joints_their_velocity_moves() -> None:
     assert source_names(TX40) == [*TX40.joint_names, "motor j5+j6"]
 
 
-def test_without_sticking_the_reversal_coulomb_terms_are_nought(world, noisy_run) -> None:
-    """Exact tracking: the friction is Fc·sign(v) at reversals too, so each coefficient is
-    zero within its σ, and the gains move by a fraction of σ with them."""
-    rng = np.random.default_rng(29)
+def _exact_pair(world, noisy_run, seed: int) -> tuple[Design, Design]:
+    """Designs of an unloaded and a loaded 20 s run by exact tracking (no sticking)."""
+    rng = np.random.default_rng(seed)
     bp = world.bases[world.robot.wrist_friction]
     runs = [
         noisy_run(0, None, rng, duration=20.0, label="unloaded"),
         noisy_run(1, world.payload, rng, duration=20.0, label="loaded"),
     ]
     a, b = (make_design(r, bp, world.robot.wrist_friction, world.robot) for r in runs)
-    assert all(r.reversal_coulomb is not None and r.reversal_coulomb.size for r in runs)
+    return a, b
+
+
+def test_without_sticking_the_reversal_coulomb_terms_are_nought(world, noisy_run) -> None:
+    """Exact tracking: the friction is Fc·sign(v) at reversals too, so each coefficient is
+    zero within its σ, and the gains move by a fraction of σ with them."""
+    a, b = _exact_pair(world, noisy_run, 29)
+    assert all(d.run.reversal_coulomb is not None and d.run.reversal_coulomb.size for d in (a, b))
     fit = ml_fit(a, b, world.payload, runs=run_pair(a, b, world.payload))
     none = np.empty(0, dtype=np.intp)
     without = ml_fit(
@@ -159,14 +165,8 @@ def test_kappa_is_the_likelihood_s_for_variance_growing_with_the_share() -> None
 
 def test_without_excess_near_reversals_the_fit_is_the_plain_one(world, noisy_run) -> None:
     """Exact tracking (no sticking): κ stays small and the gains move by a fraction of σ."""
-    rng = np.random.default_rng(23)
-    bp = world.bases[world.robot.wrist_friction]
-    runs = [
-        noisy_run(0, None, rng, duration=20.0, label="unloaded"),
-        noisy_run(1, world.payload, rng, duration=20.0, label="loaded"),
-    ]
-    a, b = (make_design(r, bp, world.robot.wrist_friction, world.robot) for r in runs)
-    assert all((r.reversal_share > 0.02).any() for r in runs)
+    a, b = _exact_pair(world, noisy_run, 23)
+    assert all((d.run.reversal_share > 0.02).any() for d in (a, b))
     fit = ml_fit(a, b, world.payload)
     plain = ml_fit(a, b, world.payload, runs=[run_arrays(d, world.payload, False) for d in (a, b)])
     assert np.all(plain.kappa == 0.0)

@@ -1,4 +1,4 @@
-"""Sticking at reversals on the closed-loop drives: the ML's variance near reversals.
+"""Sticking at reversals on the closed-loop drives: the ML's variance and Coulomb terms there.
 
 The closed-loop recordings come from the simulated cell's drive physics (explicit Coulomb
 friction at a 0.5 ms step, PI loops on quantised encoders), which share no code with the
@@ -9,8 +9,9 @@ of ms each time, and the plain fit's gains were off by up to several percent.
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
-from drivegain.identify.design import make_design
+from drivegain.identify.design import Design, make_design
 from drivegain.identify.ml import ml_fit
 from drivegain.identify.mlmodel import run_arrays, run_pair
 from drivegain.validation.cell import closed_loop_run
@@ -21,8 +22,10 @@ from drivegain.validation.world import World, prepare
 SCENARIO = next(sc for sc in SCENARIOS if sc.key == "random-closed-loop")
 
 
-def test_entries_near_reversals_count_less_and_the_bias_goes(world: World) -> None:
-    errors = {True: [], False: []}
+@pytest.fixture(scope="module")
+def stuck(world: World) -> list[tuple[World, Design, Design]]:
+    """Runs a and b of two random excitations on the closed-loop drives (seeds 0 and 100)."""
+    pairs = []
     for seed in (0, 100):
         w = seed_world(world, SCENARIO, seed)
         rng = scenario_rng(SCENARIO, seed)
@@ -31,9 +34,20 @@ def test_entries_near_reversals_count_less_and_the_bias_goes(world: World) -> No
             closed_loop_run(w, w.payload, SCENARIO, rng, "loaded"),
         ]
         a, b = (make_design(prepare(w, r), w.base, w.form, w.robot) for r in runs)
-        none = np.empty(0, dtype=np.intp)  # the variance model alone: no reversal Coulomb
+        pairs.append((w, a, b))
+    return pairs
+
+
+#: No reversal Coulomb columns (run_arrays' ``coulomb``).
+NONE = np.empty(0, dtype=np.intp)
+
+
+def test_entries_near_reversals_count_less_and_the_bias_goes(stuck) -> None:
+    """The variance model alone (no reversal Coulomb columns)."""
+    errors: dict[bool, list[np.ndarray]] = {True: [], False: []}
+    for w, a, b in stuck:
         for levels in (True, False):
-            arrays = [run_arrays(d, w.payload, levels, none) for d in (a, b)]
+            arrays = [run_arrays(d, w.payload, levels, NONE) for d in (a, b)]
             fit = ml_fit(a, b, w.payload, runs=arrays)
             errors[levels].append(fit.gains / w.truth.gains - 1.0)
             if levels:
@@ -45,27 +59,17 @@ def test_entries_near_reversals_count_less_and_the_bias_goes(world: World) -> No
     assert rms[True] < 0.01, rms
 
 
-def test_a_coulomb_coefficient_of_its_own_near_reversals_takes_up_the_stick_bias(
-    world: World,
-) -> None:
+def test_a_coulomb_coefficient_of_its_own_near_reversals_takes_up_the_stick_bias(stuck) -> None:
     """The cell's drives stick, so near a reversal their friction ramps from one side to the
     other rather than jumping: the coefficient of the velocity's sign inside its zone comes
     out negative (less friction there than Fc), and the gains' bias shrinks."""
     errors: dict[bool, list[np.ndarray]] = {True: [], False: []}
-    for seed in (0, 100):
-        w = seed_world(world, SCENARIO, seed)
-        rng = scenario_rng(SCENARIO, seed)
-        runs = [
-            closed_loop_run(w, None, SCENARIO, rng, "unloaded"),
-            closed_loop_run(w, w.payload, SCENARIO, rng, "loaded"),
-        ]
-        a, b = (make_design(prepare(w, r), w.base, w.form, w.robot) for r in runs)
-        none = np.empty(0, dtype=np.intp)
+    for w, a, b in stuck:
         for own in (True, False):
             arrays = (
                 run_pair(a, b, w.payload)
                 if own
-                else [run_arrays(d, w.payload, True, none) for d in (a, b)]
+                else [run_arrays(d, w.payload, True, NONE) for d in (a, b)]
             )
             fit = ml_fit(a, b, w.payload, runs=arrays)
             errors[own].append(fit.gains / w.truth.gains - 1.0)
