@@ -44,7 +44,7 @@ import scipy.linalg
 import scipy.optimize
 
 from drivegain.config.payload import PAYLOAD_PARAMS, Payload
-from drivegain.errors import IdentificationError
+from drivegain.errors import IdentificationError, UsageError
 from drivegain.identify import forked, mlreduce
 from drivegain.identify.autocov import ErrorAutocovariance, LaggedSums
 from drivegain.identify.design import Design
@@ -305,6 +305,9 @@ def ml_fit(
     kt = np.asarray(a.kt, float)
     kt_inv = np.linalg.inv(kt)
     # θ = (χ, c, g, χ_uL): the runs' reversal Coulomb columns follow the base parameters
+    if any(not np.array_equal(r.base_idx, runs[0].base_idx) for r in runs):
+        # arrays built one run at a time with different columns: θ would mean other things
+        raise UsageError("the runs' arrays have different base columns (build them by run_pair)")
     nb, n = runs[0].base_idx.size, a.n
     names = [p for p, k in zip(PAYLOAD_PARAMS, known, strict=True) if not k]
     samples = sum(r.samples for r in runs)

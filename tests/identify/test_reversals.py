@@ -15,6 +15,7 @@ import pytest
 
 from drivegain.config import resource_path
 from drivegain.config.robot import load_robot
+from drivegain.errors import UsageError
 from drivegain.identify.design import Design, make_design
 from drivegain.identify.ml import _kappa, ml_fit
 from drivegain.identify.mlmodel import Whitening, run_arrays, run_pair
@@ -121,6 +122,10 @@ def test_without_sticking_the_reversal_coulomb_terms_are_nought(world, noisy_run
     assert np.all(np.abs(fit.coulomb) < 4.0 * fit.coulomb_std), fit.coulomb / fit.coulomb_std
     assert np.all(np.abs(fit.gains - without.gains) < 0.3 * without.gain_std)
     assert fit.chi.size == without.chi.size == a.nb
+    # one run with the columns, one without: refused rather than misread
+    mixed = [run_arrays(a, world.payload), run_arrays(b, world.payload, True, none)]
+    with pytest.raises(UsageError, match="run_pair"):
+        ml_fit(a, b, world.payload, runs=mixed)
     # the marginal covariance of (χ, g, χ_uL) is the full one without c's rows and columns
     cov = fit.covariance_of()
     assert cov.shape == without.covariance.shape
