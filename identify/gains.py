@@ -197,7 +197,7 @@ def estimate_gains(
         fit=None,
         alpha_curve=[],
         sigma_initial=None,
-        covariance=fit.covariance_of(),
+        covariance=fit.marginal_covariance,
         block=fit.lag,
         clusters=0,
         payload_names=fit.payload_names,

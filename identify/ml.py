@@ -96,7 +96,7 @@ class MLFit:
         Names of ``payload_unknown`` (:data:`~drivegain.config.payload.PAYLOAD_PARAMS` order).
     covariance
         Covariance of :attr:`theta` (χ, c, g, χ_uL), from the errors' autocovariance corrected
-        for the fit (:mod:`~drivegain.identify.autocov`); :meth:`covariance_of` leaves c out.
+        for the fit (:mod:`~drivegain.identify.autocov`); :attr:`marginal_covariance` leaves c out.
     noise
         Σ̂, the residual covariance in current units, A², (n, n).
     kappa
@@ -174,10 +174,11 @@ class MLFit:
     def coulomb_std(self) -> np.ndarray:
         return self.std_all[self.chi.size : self.nb]
 
-    def covariance_of(self, keep_coulomb: bool = False) -> np.ndarray:
-        """:attr:`covariance`, of (χ, g, χ_uL) only unless ``keep_coulomb`` (the marginal
-        covariance: the reversal Coulomb rows and columns left out)."""
-        if keep_coulomb or not self.coulomb.size:
+    @property
+    def marginal_covariance(self) -> np.ndarray:
+        """:attr:`covariance` of (χ, g, χ_uL) alone: the reversal Coulomb rows and columns
+        left out."""
+        if not self.coulomb.size:
             return self.covariance
         keep = np.r_[0 : self.chi.size, self.nb : self.covariance.shape[0]]
         return np.asarray(self.covariance[np.ix_(keep, keep)])

@@ -26,7 +26,7 @@ from drivegain.dynamics.params import N_INERTIAL, N_PER_JOINT, standard_names
 from drivegain.dynamics.regressor import stack_joint_major, standard_regressor
 from drivegain.errors import DataError
 from drivegain.identify.compact import CompactRegressor
-from drivegain.identify.reversals import reversal_entries, reversal_signs, reversal_zones
+from drivegain.identify.reversals import reversal_entries, reversal_marks
 from drivegain.identify.signal import (
     FilterSettings,
     decimate_columns,
@@ -241,7 +241,7 @@ class PreparedRun:
         The columns of :attr:`regressor`, after those of :attr:`columns`, of the Coulomb
         velocities' signs inside their reversal zones, one per velocity of
         :func:`~drivegain.identify.reversals.coulomb_sources` that has one
-        (:func:`~drivegain.identify.reversals.reversal_signs`); None when not computed. Only the
+        (:func:`~drivegain.identify.reversals.reversal_marks`); None when not computed. Only the
         maximum-likelihood gains use them.
     """
 
@@ -497,8 +497,7 @@ def prepare_recording(
     for s in range(0, n_samples, CHUNK):
         qd[s : s + CHUNK] = five_point(qf, rate_hz, s, s + CHUNK)[0]
     rest = at_rest(qd)
-    zones = reversal_zones(qd, model.robot)
-    signs = reversal_signs(qd, model.robot)
+    zones, signs = reversal_marks(qd, model.robot)
     del qd
     (c_all, rest_d, zones_d, signs_d) = parallel_decimate(
         [current, rest.astype(float), zones, signs], f, 0, source=src

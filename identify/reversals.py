@@ -9,7 +9,7 @@ enters. The error has the sign of the reversal, so it is correlated with the Cou
 and biases the gains: on the simulated cell's closed-loop drives with random excitations, by
 0.5-10 % RMS per joint (docs/model.md, "Reversals").
 
-:func:`reversal_zones` marks, per sample and drive, whether a Coulomb velocity entering that
+:func:`reversal_marks` marks, per sample and drive, whether a Coulomb velocity entering that
 drive's current is near zero. The preparation decimates the mark with the regressor's filter,
 so each decimated entry knows the share of its filter window near a reversal
 (:attr:`~drivegain.identify.prepare.PreparedRun.reversal_share`). In the maximum-likelihood
@@ -21,7 +21,7 @@ near reversals count less.
 Down-weighting leaves a bias: the misfit is not noise but has the sign of the velocity. While a
 velocity crawls through zero the friction ramps from one side to the other instead of jumping,
 so inside the zone its mean is smaller than ``Fc`` and of the same sign as the (filtered)
-velocity. :func:`reversal_signs` gives that velocity's sign inside the zone only; as a
+velocity. :func:`reversal_marks` also gives that velocity's sign inside the zone only; as a
 regressor column of its own (a Coulomb coefficient that holds near reversals,
 :func:`reversal_entries`) it takes up the mean of the misfit, which would otherwise go to the
 gains (:attr:`~drivegain.identify.prepare.PreparedRun.reversal_coulomb`).
@@ -75,54 +75,39 @@ def coulomb_sources(robot: Robot) -> tuple[np.ndarray, np.ndarray]:
     return velocity, reach
 
 
-def reversal_zones(qd: np.ndarray, robot: Robot, fraction: float = REVERSAL_FRACTION) -> np.ndarray:
-    """Samples near a reversal of a Coulomb term of each drive: (N, n) float, 1 or 0.
+def reversal_marks(
+    qd: np.ndarray, robot: Robot, fraction: float = REVERSAL_FRACTION
+) -> tuple[np.ndarray, np.ndarray]:
+    """Where each drive is near a reversal, and each Coulomb velocity's sign there.
 
     Parameters
     ----------
     qd
         Filtered joint velocities, rad/s, (N, n).
     robot
-        The robot (its couplings decide which velocities have Coulomb friction).
+        The robot (its couplings decide which velocities have Coulomb friction:
+        :func:`coulomb_sources`).
     fraction
         A velocity below this fraction of its RMS over the run counts as reversing.
-    """
-    reach = coulomb_sources(robot)[1]
-    near = _near(qd, robot, fraction)[0]
-    return np.asarray((near.astype(float) @ reach.astype(float)) > 0.0, dtype=float)
-
-
-def _near(qd: np.ndarray, robot: Robot, fraction: float) -> tuple[np.ndarray, np.ndarray]:
-    """Which samples of each Coulomb velocity are near a reversal, (N, r) bool, and those
-    velocities, rad/s, (N, r)."""
-    velocity = coulomb_sources(robot)[0]
-    v = np.asarray(qd, dtype=float) @ velocity.T
-    rms = np.sqrt(np.mean(v**2, axis=0))
-    return np.abs(v) <= fraction * np.where(rms > 0.0, rms, np.inf), v
-
-
-def reversal_signs(qd: np.ndarray, robot: Robot, fraction: float = REVERSAL_FRACTION) -> np.ndarray:
-    """The sign of each Coulomb velocity where it is near a reversal, 0 elsewhere, (N, r).
-
-    Parameters
-    ----------
-    qd
-        Filtered joint velocities, rad/s, (N, n).
-    robot
-        The robot (the velocities are those of :func:`coulomb_sources`).
-    fraction
-        As :func:`reversal_zones`.
 
     Returns
     -------
-    numpy.ndarray
-        (N, r), -1, 0 or 1. A velocity whose zone holds less than :data:`MIN_ZONE_SHARE` or
-        more than :data:`MAX_ZONE_SHARE` of the samples gets zeros (no column).
+    zones : numpy.ndarray
+        (N, n) float, 1 or 0: the samples where a Coulomb velocity whose friction reaches drive
+        i's current is near a reversal.
+    signs : numpy.ndarray
+        (N, r), -1, 0 or 1: each Coulomb velocity's sign where it is near a reversal, 0
+        elsewhere. A velocity whose zone holds less than :data:`MIN_ZONE_SHARE` or more than
+        :data:`MAX_ZONE_SHARE` of the samples gets zeros (no column).
     """
-    near, v = _near(qd, robot, fraction)
+    velocity, reach = coulomb_sources(robot)
+    v = np.asarray(qd, dtype=float) @ velocity.T  # (N, r)
+    rms = np.sqrt(np.mean(v**2, axis=0))
+    near = np.abs(v) <= fraction * np.where(rms > 0.0, rms, np.inf)
+    zones = np.asarray((near.astype(float) @ reach.astype(float)) > 0.0, dtype=float)
     share = near.mean(axis=0) if near.shape[0] else np.zeros(near.shape[1])
     usable = (share >= MIN_ZONE_SHARE) & (share <= MAX_ZONE_SHARE)
-    return np.asarray(np.where(near & usable[None, :], np.sign(v), 0.0))
+    return zones, np.asarray(np.where(near & usable[None, :], np.sign(v), 0.0))
 
 
 def reversal_entries(robot: Robot) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -135,7 +120,7 @@ def reversal_entries(robot: Robot) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     -------
     joint, source, weight
         (m,) each: joint torque ``joint`` gets ``weight`` times the signs of velocity
-        ``source`` (:func:`reversal_signs`) per unit of its coefficient (N·m).
+        ``source`` (:func:`reversal_marks`) per unit of its coefficient (N·m).
     """
     velocity = coulomb_sources(robot)[0]
     source, joint = np.nonzero(velocity)

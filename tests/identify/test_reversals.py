@@ -22,8 +22,7 @@ from drivegain.identify.mlmodel import Whitening, run_arrays, run_pair
 from drivegain.identify.reversals import (
     coulomb_sources,
     reversal_entries,
-    reversal_signs,
-    reversal_zones,
+    reversal_marks,
     source_names,
 )
 
@@ -55,7 +54,7 @@ def test_zones_sit_at_the_reversals_for_the_share_arcsin_gives() -> None:
     qd[:, 0] = np.sin(2 * np.pi * 0.5 * t)  # joint 1 reverses every second
     qd[:, 4] = 1.0 + 0.5 * np.sin(2 * np.pi * 0.2 * t)  # joint 5 never reverses...
     qd[:, 5] = -qd[:, 4] + 0.3 * np.sin(2 * np.pi * 0.3 * t)  # ...but motor 6 (q5 + q6) does
-    zones = reversal_zones(qd, TX40, fraction=0.1)
+    zones = reversal_marks(qd, TX40, fraction=0.1)[0]
     # |sin| ≤ 0.1 · RMS = 0.1/√2 for 2/π · arcsin(0.1/√2) of the time
     share = 2 / math.pi * math.asin(0.1 / math.sqrt(2))
     assert zones[:, 0].mean() == pytest.approx(share, rel=0.02)
@@ -74,7 +73,7 @@ def test_reversal_signs_are_the_velocity_s_sign_inside_its_zone_only() -> None:
     qd[:, 1] = 0.0  # at rest all along: its zone is the whole run, no column of its own
     qd[:, 4] = 1.0 + 0.5 * np.sin(2 * np.pi * 0.2 * t)  # joint 5 never reverses...
     qd[:, 5] = -qd[:, 4] + 0.3 * np.sin(2 * np.pi * 0.3 * t)  # ...but motor 6 (q5 + q6) does
-    signs = reversal_signs(qd, TX40, fraction=0.1)
+    signs = reversal_marks(qd, TX40, fraction=0.1)[1]
     assert signs.shape == (t.size, TX40.n + 1)
     near1 = np.abs(qd[:, 0]) <= 0.1 / math.sqrt(2)  # 0.1 RMS of a unit sine
     np.testing.assert_array_equal(signs[:, 0], np.where(near1, np.sign(qd[:, 0]), 0.0))
@@ -127,7 +126,7 @@ def test_without_sticking_the_reversal_coulomb_terms_are_nought(world, noisy_run
     with pytest.raises(UsageError, match="run_pair"):
         ml_fit(a, b, world.payload, runs=mixed)
     # the marginal covariance of (χ, g, χ_uL) is the full one without c's rows and columns
-    cov = fit.covariance_of()
+    cov = fit.marginal_covariance
     assert cov.shape == without.covariance.shape
     np.testing.assert_array_equal(np.sqrt(np.diag(cov))[a.nb : a.nb + a.n], fit.gain_std)
 
