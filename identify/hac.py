@@ -23,6 +23,9 @@ from drivegain.errors import UsageError
 
 #: Largest lag as a fraction of the shortest run's samples: beyond it the estimate is too noisy.
 MAX_LAG_FRACTION = 0.25
+#: A run's samples are gathered by the phase of a periodic excitation only when it spans this
+#: many periods at least (fewer: most phases would hold one sample).
+MIN_PERIODS = 1.5
 
 
 def _check_series(series: Sequence[np.ndarray]) -> list[np.ndarray]:
@@ -177,6 +180,46 @@ class LongRunSum:
         return np.asarray(self._sum / (self.lag + 1.0))
 
 
+def phase_bins(
+    t: np.ndarray, period_s: float | None, rate_hz: float
+) -> tuple[np.ndarray, int] | None:
+    """The phase of each sample of a run of a periodic excitation, in bins one sample wide.
+
+    An error that depends on where the excitation is (a misfit of the model at a pose or a
+    reversal, rather than noise) comes back every period, so samples one or more periods apart
+    are correlated however far apart they are in time. Summing a run's scores by phase bin
+    (:func:`~drivegain.identify.estimate.cluster_sums`) before the long-run covariance counts
+    those correlations too.
+
+    Parameters
+    ----------
+    t
+        Sample times of the run, s, increasing (gaps allowed).
+    period_s
+        Period of the excitation, s, or None when it is not periodic.
+    rate_hz
+        Sample rate of ``t``, Hz.
+
+    Returns
+    -------
+    (labels, bins) or None
+        The bin of each sample, 0..bins−1 (the nearest; phase from the run's first sample), and the
+        number of bins (one period at ``rate_hz``); None without a period or when the run spans
+        less than :data:`MIN_PERIODS` periods.
+    """
+    t = np.asarray(t, dtype=float)
+    if rate_hz <= 0.0:
+        raise UsageError(f"rate_hz must be > 0, got {rate_hz}")
+    if period_s is None or not period_s > 0.0 or t.size < 2:
+        return None
+    if t[-1] - t[0] < MIN_PERIODS * period_s:
+        return None
+    bins = max(2, round(period_s * rate_hz))
+    # the nearest bin: a sample on a bin's edge must not fall to its neighbour by round-off
+    phase = np.mod(t - t[0], period_s) / period_s
+    return np.rint(phase * bins).astype(np.intp) % bins, bins
+
+
 def sandwich(bread: np.ndarray, meat: np.ndarray, rows: int, params: int) -> np.ndarray:
     """``H⁻¹ S H⁻¹ · rows / (rows − params)``: the HAC covariance with the small-sample factor.
 
@@ -200,3 +243,42 @@ def sandwich(bread: np.ndarray, meat: np.ndarray, rows: int, params: int) -> np.
     h_inv = np.linalg.pinv(bread, hermitian=True)
     cov = h_inv @ meat @ h_inv * (rows / (rows - params))
     return np.asarray(0.5 * (cov + cov.T))
+
+
+def with_repeats(
+    cov: np.ndarray, bread: np.ndarray, folded: Sequence[np.ndarray], lag: int, rows: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """``cov`` with each standard deviation raised to that of the scores gathered by phase.
+
+    :class:`~drivegain.identify.autocov.LaggedSums` takes the errors as stationary and
+    correlated over a few samples. Where the model misses something the excitation repeats
+    (the stick of a drive at each reversal, a pose-dependent effect), the misfit comes back
+    every period, and the samples of one phase in different periods are correlated: a run of
+    P periods then carries up to P times the variance of its misfit that a short lag counts.
+    The Newey-West sandwich of each run's scores summed by phase (:func:`phase_bins`) counts
+    it without assuming what repeats. It is the noisier estimate of the two, so it only raises
+    σ, entry by entry (the correlations of ``cov`` are kept).
+
+    Parameters
+    ----------
+    cov
+        Covariance from the errors' autocovariance, (P, P).
+    bread
+        H, (P, P).
+    folded
+        Per run, its per-sample scores summed by phase bin, (bins, P).
+    lag
+        The errors' longest lag, samples (one bin is one sample).
+    rows
+        Scalar equations of the fit (the sandwich's small-sample factor).
+
+    Returns
+    -------
+    (numpy.ndarray, numpy.ndarray)
+        The covariance, (P, P), and the factor (≥ 1) of each standard deviation, (P,).
+    """
+    by_phase = sandwich(bread, long_run_covariance(folded, lag), rows, bread.shape[0])
+    var = np.diag(cov)
+    ratio = np.divide(np.diag(by_phase), var, out=np.ones_like(var), where=var > 0.0)
+    scale = np.sqrt(np.maximum(ratio, 1.0))
+    return cov * np.outer(scale, scale), scale

@@ -49,13 +49,15 @@ from drivegain.identify import forked, mlreduce
 from drivegain.identify.autocov import ErrorAutocovariance, LaggedSums
 from drivegain.identify.design import Design
 from drivegain.identify.eiv import InfluenceSums
-from drivegain.identify.hac import bartlett_lag, lag1_autocorrelation
+from drivegain.identify.estimate import cluster_sums
+from drivegain.identify.hac import bartlett_lag, lag1_autocorrelation, phase_bins, with_repeats
 from drivegain.identify.mlmodel import (
     RunArrays,
     Whitening,
     chunks,
     predict,
     run_pair,
+    scores,
     split_theta,
     whitened_block,
 )
@@ -96,7 +98,12 @@ class MLFit:
         Names of ``payload_unknown`` (:data:`~drivegain.config.payload.PAYLOAD_PARAMS` order).
     covariance
         Covariance of :attr:`theta` (χ, c, g, χ_uL), from the errors' autocovariance corrected
-        for the fit (:mod:`~drivegain.identify.autocov`); :attr:`marginal_covariance` leaves c out.
+        for the fit (:mod:`~drivegain.identify.autocov`), scaled up by :attr:`repeat_scale`;
+        :attr:`marginal_covariance` leaves c out.
+    repeat_scale
+        Per entry of :attr:`theta`, the factor (≥ 1) its standard deviation was raised by
+        because the errors repeat with the excitation's period (:func:`~.hac.with_repeats`);
+        None when a run spans too few periods of a known one, or has none.
     noise
         Σ̂, the residual covariance in current units, A², (n, n).
     kappa
@@ -146,6 +153,7 @@ class MLFit:
     influence: np.ndarray | None = None
     coulomb: np.ndarray = field(default_factory=lambda: np.zeros(0))
     coulomb_sources: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.intp))
+    repeat_scale: np.ndarray | None = None
 
     @property
     def theta(self) -> np.ndarray:
@@ -429,19 +437,25 @@ def ml_fit(
     h_inv = np.linalg.pinv(last_r.T @ last_r, hermitian=True)
     # With ``influence``, the errors-in-variables test's sums from the same blocks.
     test_ls = linear if influence else None
-    (sums, infl), *rest = forked.map_items(
+    phases = [phase_bins(d.run.t, d.run.period_s, d.run.rate_hz) for d in (a, b)]
+    (sums, infl, folded), *rest = forked.map_items(
         "maximum-likelihood covariance",
-        lambda r: _run_sums(theta, r, kt_inv, whiten, h_inv, lag, test_ls, kt),
-        runs,
+        lambda k: _run_sums(theta, runs[k], kt_inv, whiten, h_inv, lag, test_ls, kt, phases[k]),
+        range(len(runs)),
         parallel=parallel,
     )
-    for other, other_infl in rest:
+    by_phase = [folded]
+    for other, other_infl, other_folded in rest:
         sums.merge(other)
+        by_phase.append(other_folded)
         if infl is not None and other_infl is not None:
             infl.merge(other_infl)
     cov, autocov = sums.covariance()
     bread = sums.bread
     rows = sum(r.samples for r in runs) * n
+    repeat = None
+    if all(f is not None for f in by_phase):
+        cov, repeat = with_repeats(cov, bread, [f for f in by_phase if f is not None], lag, rows)
     chi, g, chi_u = split_theta(theta, nb, n)
     sources = runs[0].base_idx[a.nb :] - len(a.run.columns)  # columns after the named ones
     return MLFit(
@@ -464,6 +478,7 @@ def ml_fit(
         hessian=bread,
         linear=linear,
         influence=None if infl is None else infl.meat(),
+        repeat_scale=repeat,
     )
 
 
@@ -476,24 +491,29 @@ def _run_sums(
     lag: int,
     linear: LinearStart | None = None,
     kt: np.ndarray | None = None,
-) -> tuple[LaggedSums, InfluenceSums | None]:
-    """One run's lagged sums for the covariance (:class:`~.autocov.LaggedSums`) and, given
-    the linear start ``linear`` and the coupling factor ``kt``, the errors-in-variables
-    test's sums (:class:`~.eiv.InfluenceSums`) from the same blocks."""
+    phases: tuple[np.ndarray, int] | None = None,
+) -> tuple[LaggedSums, InfluenceSums | None, np.ndarray | None]:
+    """One run's lagged sums for the covariance (:class:`~.autocov.LaggedSums`), given the
+    linear start ``linear`` and the coupling factor ``kt`` the errors-in-variables test's sums
+    (:class:`~.eiv.InfluenceSums`), and given its phase bins (:func:`~.hac.phase_bins`) its
+    scores summed by phase, (bins, P), all from the same blocks."""
     sums = LaggedSums(h_inv, lag)
     infl = None
     if linear is not None and kt is not None:
         infl = InfluenceSums(linear, kt, lag, run.base_idx.size)
+    folded = None if phases is None else np.zeros((phases[1], theta.size))
     for sl in chunks(run.samples):
         sub = run.rows(sl)
         jw, ew = whitened_block(theta, sub, kt_inv, whiten)
         sums.add(jw, ew)
         if infl is not None:
             infl.add(sub, jw, ew)
+        if folded is not None and phases is not None:
+            folded += cluster_sums(scores(jw, ew), phases[0][sl], phases[1])
     sums.end_run()
     if infl is not None:
         infl.end_run()
-    return sums, infl
+    return sums, infl, folded
 
 
 def _reduce(

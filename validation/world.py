@@ -238,7 +238,8 @@ def simulate(
 
 
 def prepare(world: World, run: SimRun) -> PreparedRun:
-    """The normal path: filters, derivatives from quantised positions, parallel decimation."""
+    """The normal path: filters, derivatives from quantised positions, parallel decimation; the
+    excitation's period known, as a log's TRAJ.json attachment gives it."""
     return prepare_recording(
         world.model,
         world.columns,
@@ -248,6 +249,7 @@ def prepare(world: World, run: SimRun) -> PreparedRun:
         rate_hz=world.rate_hz,
         settings=replace(world.settings, current_delay=run.current_delay),
         payload=run.payload,
+        period_s=world.fourier.period_s,
     )
 
 
