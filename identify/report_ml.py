@@ -47,6 +47,9 @@ def ml_json(w: GainIdentification, robot: Robot) -> dict[str, Any]:
         "covariance_lag_samples": ml.lag,
         "residual_lag1_autocorrelation": _num(ml.rho),
         "error_autocovariance": [_num(v) for v in ml.autocov.gamma],
+        "gain_std_repeat_factor": None
+        if ml.repeat_scale is None
+        else [_num(f) for f in ml.repeat_scale[ml.nb : ml.nb + len(robot.joint_names)]],
         "payload_unknown": {
             PAYLOAD_KEYS[PAYLOAD_PARAMS.index(p)]: {"value": _num(v), "std": _num(s)}
             for p, v, s in zip(w.payload_names, w.payload_unknown, w.payload_std, strict=True)
@@ -128,6 +131,17 @@ def ml_lines(w: GainIdentification, robot: Robot) -> list[str]:
         + f"); {ml.iterations} rounds"
         + ("" if ml.converged else " (**did not settle**)")
         + ".",
+        "- Errors repeating every period of the excitation: "
+        + (
+            "not checked (no known period, or a run spans under 1.5 of it)."
+            if ml.repeat_scale is None
+            else "gain σ raised × "
+            + ", ".join(
+                f"{nm} {_g(float(f), 3)}"
+                for nm, f in zip(names, ml.repeat_scale[ml.nb : ml.nb + len(names)], strict=True)
+            )
+            + ' (1: not raised; docs/model.md, "Errors that repeat every period").'
+        ),
         f"- Errors-in-variables test (Durbin-Wu-Hausman, LS against ML): statistic "
         f"{_g(eiv.statistic, 3)} on {eiv.dof} degrees of freedom; " + verdict + ".",
         "- Plain LS gains (N·m/A, ± 2σ): "
