@@ -181,7 +181,7 @@ class LongRunSum:
 
 
 def phase_bins(
-    t: np.ndarray, period_s: float | None, rate_hz: float
+    t: np.ndarray, period_s: float | None, rate_hz: float, origin_s: float | None = None
 ) -> tuple[np.ndarray, int] | None:
     """The phase of each sample of a run of a periodic excitation, in bins one sample wide.
 
@@ -199,13 +199,16 @@ def phase_bins(
         Period of the excitation, s, or None when it is not periodic.
     rate_hz
         Sample rate of ``t``, Hz.
+    origin_s
+        Time of phase 0 (the excitation's start) on the clock of ``t``, s; None: the run's
+        first sample. Runs whose phases are to be compared need theirs.
 
     Returns
     -------
     (labels, bins) or None
-        The bin of each sample, 0..bins−1 (the nearest; phase from the run's first sample), and the
-        number of bins (one period at ``rate_hz``); None without a period or when the run spans
-        less than :data:`MIN_PERIODS` periods.
+        The bin of each sample, 0..bins−1 (the nearest), and the number of bins (one period at
+        ``rate_hz``); None without a period or when the run spans less than
+        :data:`MIN_PERIODS` periods.
     """
     t = np.asarray(t, dtype=float)
     if rate_hz <= 0.0:
@@ -216,7 +219,7 @@ def phase_bins(
         return None
     bins = max(2, round(period_s * rate_hz))
     # the nearest bin: a sample on a bin's edge must not fall to its neighbour by round-off
-    phase = np.mod(t - t[0], period_s) / period_s
+    phase = np.mod(t - (t[0] if origin_s is None else origin_s), period_s) / period_s
     return np.rint(phase * bins).astype(np.intp) % bins, bins
 
 
@@ -255,8 +258,8 @@ def with_repeats(
     (the stick of a drive at each reversal, a pose-dependent effect), the misfit comes back
     every period, and the samples of one phase in different periods are correlated: a run of
     P periods then carries up to P times the variance of its misfit that a short lag counts.
-    The Newey-West sandwich of each run's scores summed by phase (:func:`phase_bins`) counts
-    it without assuming what repeats. It is the noisier estimate of the two, so it only raises
+    The Newey-West sandwich of the scores summed by phase (:func:`phase_bins`) counts it
+    without assuming what repeats. It is the noisier estimate of the two, so it only raises
     σ, entry by entry (the correlations of ``cov`` are kept).
 
     Parameters
@@ -266,7 +269,8 @@ def with_repeats(
     bread
         H, (P, P).
     folded
-        Per run, its per-sample scores summed by phase bin, (bins, P).
+        Per run, its per-sample scores summed by phase bin, (bins, P); runs of one excitation
+        whose phases are comparable (the same origin) may be summed into one.
     lag
         The errors' longest lag, samples (one bin is one sample).
     rows

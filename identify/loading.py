@@ -152,6 +152,7 @@ def _load_one(
         progress=steps.advance,
         period_s=trajectory_period(run.attachments),
     )
+    prepared = dataclasses.replace(prepared, phase_origin_s=run.excitation_start_s)
     return Loaded(prepared, _run_info(run, prepared), dict(run.meta))
 
 

@@ -437,7 +437,9 @@ def ml_fit(
     h_inv = np.linalg.pinv(last_r.T @ last_r, hermitian=True)
     # With ``influence``, the errors-in-variables test's sums from the same blocks.
     test_ls = linear if influence else None
-    phases = [phase_bins(d.run.t, d.run.period_s, d.run.rate_hz) for d in (a, b)]
+    phases = [
+        phase_bins(d.run.t, d.run.period_s, d.run.rate_hz, d.run.phase_origin_s) for d in (a, b)
+    ]
     (sums, infl, folded), *rest = forked.map_items(
         "maximum-likelihood covariance",
         lambda k: _run_sums(theta, runs[k], kt_inv, whiten, h_inv, lag, test_ls, kt, phases[k]),
@@ -454,8 +456,13 @@ def ml_fit(
     bread = sums.bread
     rows = sum(r.samples for r in runs) * n
     repeat = None
-    if all(f is not None for f in by_phase):
-        cov, repeat = with_repeats(cov, bread, [f for f in by_phase if f is not None], lag, rows)
+    folded = [f for f in by_phase if f is not None]
+    if len(folded) == len(runs):
+        if _same_phases(a, b) and folded[0].shape == folded[1].shape:
+            # one excitation, phases from its start in both runs: a misfit common to both
+            # (the same reversals) is correlated across them too
+            folded = [folded[0] + folded[1]]
+        cov, repeat = with_repeats(cov, bread, folded, lag, rows)
     chi, g, chi_u = split_theta(theta, nb, n)
     sources = runs[0].base_idx[a.nb :] - len(a.run.columns)  # columns after the named ones
     return MLFit(
@@ -479,6 +486,18 @@ def ml_fit(
         linear=linear,
         influence=None if infl is None else infl.meat(),
         repeat_scale=repeat,
+    )
+
+
+def _same_phases(a: Design, b: Design) -> bool:
+    """Whether runs a and b have phases of one excitation that can be compared: each knows
+    when the excitation started, and both have the same period."""
+    ra, rb = a.run, b.run
+    return (
+        ra.phase_origin_s is not None
+        and rb.phase_origin_s is not None
+        and ra.period_s is not None
+        and ra.period_s == rb.period_s
     )
 
 

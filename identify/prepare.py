@@ -230,6 +230,9 @@ class PreparedRun:
     period_s
         Period of the excitation when it is periodic (errors that depend on the pose repeat
         with it), else None.
+    phase_origin_s
+        When the excitation started on the clock of ``t`` (its phase 0), s, if known: runs of
+        one excitation then have comparable phases (:func:`~drivegain.identify.hac.phase_bins`).
     rest_samples
         Samples of the recording where the robot was at rest (:func:`at_rest`); decimated
         samples near them are not kept, so ``t`` may have gaps.
@@ -259,6 +262,7 @@ class PreparedRun:
     rest_samples: int = 0
     reversal_share: np.ndarray | None = None
     reversal_coulomb: np.ndarray | None = None
+    phase_origin_s: float | None = None
 
     @property
     def samples(self) -> int:
@@ -286,6 +290,7 @@ class PreparedRun:
             rest_samples=self.rest_samples,
             reversal_share=None if self.reversal_share is None else self.reversal_share[sl],
             reversal_coulomb=self.reversal_coulomb,
+            phase_origin_s=self.phase_origin_s,
         )
 
 

@@ -24,7 +24,7 @@ from drivegain.config.payload import Payload, load_payload
 from drivegain.config.robot import Robot
 from drivegain.errors import ConfigError, DataError, InputError
 from drivegain.formats.log import METADATA_NAME
-from drivegain.formats.logreader import read_run
+from drivegain.formats.logreader import RunLog, read_run
 from drivegain.identify.procedure import GivenGains
 from drivegain.identify.timebase import TimeBase, uniform_samples
 
@@ -244,6 +244,19 @@ class LoadedRun:
     notes: list[str] = field(default_factory=list)
     time_base: TimeBase | None = None
     channel: str = "reference"
+    excitation_start_s: float | None = None
+
+
+def excitation_start(log: RunLog) -> float | None:
+    """When the excitation began on the log's clock ``t`` (s): the first sample at or after the
+    session's ``phase excitation`` event; None for a log without one (another program's)."""
+    if log.log_time_ns.shape != log.t.shape:
+        return None
+    for ev in log.events:
+        if ev.get("phase") == "excitation":
+            k = int(np.searchsorted(log.log_time_ns, int(ev["log_time_ns"])))
+            return float(log.t[k]) if k < log.t.size else None
+    return None
 
 
 def load_run(
@@ -304,4 +317,5 @@ def load_run(
         notes=notes,
         time_base=tb,
         channel=current,
+        excitation_start_s=excitation_start(log),
     )

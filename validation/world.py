@@ -239,8 +239,9 @@ def simulate(
 
 def prepare(world: World, run: SimRun) -> PreparedRun:
     """The normal path: filters, derivatives from quantised positions, parallel decimation; the
-    excitation's period known, as a log's TRAJ.json attachment gives it."""
-    return prepare_recording(
+    excitation's period and start known, as a drivegain log gives them (its TRAJ.json
+    attachment, its ``phase excitation`` event)."""
+    prepared = prepare_recording(
         world.model,
         world.columns,
         label=run.label,
@@ -251,6 +252,8 @@ def prepare(world: World, run: SimRun) -> PreparedRun:
         payload=run.payload,
         period_s=world.fourier.period_s,
     )
+    # every run starts at the excitation's time 0, as the acquisition's event marks it
+    return replace(prepared, phase_origin_s=0.0)
 
 
 def simulate_three(world: World, scenario: Scenario, rng: np.random.Generator) -> list[SimRun]:

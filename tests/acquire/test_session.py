@@ -25,9 +25,11 @@ from drivegain.cli import main
 from drivegain.config import resource_path
 from drivegain.drivers.cia402 import State
 from drivegain.errors import BusError, ConfigError, DataError, DriveError, InputError
+from drivegain.excite.motion import Phase
 from drivegain.excite.trajectory import load_trajectory, plan_excitation
 from drivegain.formats.log import EventLevel
 from drivegain.formats.logreader import read_run
+from drivegain.identify.runs import excitation_start
 
 
 def _messages(path: Path) -> dict[str, list[dict]]:
@@ -81,6 +83,9 @@ def test_run_logs_every_cycle_per_contract(
     motion = plan_excitation(load_trajectory(short_trajectory), cfg.robot, log.position[0])
     q_plan, _, _ = motion.sample(log.t)
     np.testing.assert_allclose(log.setpoint, q_plan, atol=2e-4)
+    # the identification finds the excitation's start (its phase 0) from the phase event
+    start = next(t0 for ph, t0, _ in motion.segments if ph is Phase.EXCITATION)
+    assert excitation_start(log) == pytest.approx(start, abs=2 * 0.004)
     # ...the robot followed them, and it ends at rest where it started
     lag = np.abs(log.setpoint[:-1] - log.position[1:]).max(axis=0)
     assert np.all(lag < 0.02), lag

@@ -106,3 +106,17 @@ def test_white_errors_keep_their_sigma() -> None:
     # per cent on average, never a factor.
     assert float(np.mean(ratios)) < 1.1
     assert float(np.median(ratios)) < 1.05
+
+
+def test_phase_bins_from_the_excitation_start_line_runs_up() -> None:
+    """Two runs of one excitation started at different times of their logs: measured from each
+    run's excitation start, the same pose has the same bin in both."""
+    rate, period = 10.0, 5.0
+    a = phase_bins(1.0 + np.arange(200) / rate, period, rate, origin_s=3.0)
+    b = phase_bins(7.3 + np.arange(200) / rate, period, rate, origin_s=9.3)
+    assert a is not None and b is not None
+    np.testing.assert_array_equal(a[0], b[0])
+    assert a[0][20] == 0  # t = 3.0 s: the excitation's phase 0
+    # from their first samples instead, the two runs' bins would not line up
+    first = phase_bins(7.3 + np.arange(200) / rate, period, rate)
+    assert first is not None and not np.array_equal(first[0], a[0])

@@ -29,6 +29,7 @@ from drivegain.formats.log import (
 )
 from drivegain.formats.logreader import read_run
 from drivegain.formats.logwriter import LogWriter, write_run
+from drivegain.identify.runs import excitation_start
 
 HERE = Path(__file__).resolve().parent
 NAMES = ["j1", "j2", "j3", "j4", "j5", "j6"]
@@ -190,6 +191,7 @@ def test_writer_output_read_by_mcap_library(tmp_path: Path) -> None:
     assert [e["text"] for e in log.events] == ["phase"]
     assert log.events[0]["log_time_ns"] == 5_000_000_000 + 10 * 4_000_000
     assert log.missing_cycles() == 0
+    assert excitation_start(log) == log.t[10]  # the phase event's cycle
 
 
 def test_context_manager_finishes_after_a_fault(tmp_path: Path) -> None:
@@ -584,6 +586,7 @@ def test_write_run_helper_with_events_and_gaps(tmp_path: Path) -> None:
     log = read_run(p)
     assert log.missing_cycles() == 3 and log.messages_recovered == 97
     assert log.events[0]["phase"] == "approach" and log.events[1]["code"] == 0x8130
+    assert excitation_start(log) is None  # no excitation phase in this log
 
 
 # --- corruption is never read as a shorter file -------------------------------------------
