@@ -456,13 +456,13 @@ def ml_fit(
     bread = sums.bread
     rows = sum(r.samples for r in runs) * n
     repeat = None
-    folded = [f for f in by_phase if f is not None]
-    if len(folded) == len(runs):
-        if _same_phases(a, b) and folded[0].shape == folded[1].shape:
+    summed = [f for f in by_phase if f is not None]
+    if len(summed) == len(runs):
+        if _same_phases(a, b) and summed[0].shape == summed[1].shape:
             # one excitation, phases from its start in both runs: a misfit common to both
             # (the same reversals) is correlated across them too
-            folded = [folded[0] + folded[1]]
-        cov, repeat = with_repeats(cov, bread, folded, lag, rows)
+            summed = [summed[0] + summed[1]]
+        cov, repeat = with_repeats(cov, bread, summed, lag, rows)
     chi, g, chi_u = split_theta(theta, nb, n)
     sources = runs[0].base_idx[a.nb :] - len(a.run.columns)  # columns after the named ones
     return MLFit(
