@@ -21,10 +21,12 @@ from drivegain.identify.design import (
     Design,
     joint_residual_sq,
     ls_transform,
+    run_phases,
+    same_phases,
     stacked_factor,
 )
-from drivegain.identify.estimate import LSResult, ls_from_factor
-from drivegain.identify.hac import LongRunSum, bartlett_lag, sandwich
+from drivegain.identify.estimate import LSResult, cluster_sums, ls_from_factor
+from drivegain.identify.hac import LongRunSum, bartlett_lag, gathered, sandwich, with_repeats
 from drivegain.identify.weighting import joint_sigma
 
 
@@ -208,7 +210,9 @@ def case_covariance(
 
     With A the weighted columns and c = V·g/σ_j the weighted torques, x̂ = H⁻¹Aᵀc (H = AᵀA).
     Per-sample scores ψ_k = Σ_j a_jk (a_jkᵀx̂ − c_jk) give the Newey-West covariance
-    (:mod:`~drivegain.identify.hac`), lag from the weighted residuals; the gains enter c
+    (:mod:`~drivegain.identify.hac`), lag from the weighted residuals, each σ raised where the
+    scores summed by phase of a periodic excitation say so
+    (:func:`~drivegain.identify.hac.with_repeats`); the gains enter c
     linearly, so ∂x̂/∂g = H⁻¹Aᵀ ∂c/∂g and their covariance adds J_g Cov(g) J_gᵀ (the gains
     treated as independent of this fit's noise).
 
@@ -245,13 +249,24 @@ def case_covariance(
     resid = [d.dot(t @ x_aug) / sigma[None, :] for d, t in zip(designs, transforms, strict=True)]
     lag = bartlett_lag(resid)
     meat = LongRunSum(p, lag)
+    by_phase: list[np.ndarray | None] = []
     for d, t, e in zip(designs, transforms, resid, strict=True):
         w = e / sigma[None, :]
+        phases = run_phases(d)
+        folded = None if phases is None else np.zeros((phases[1], p))
         for sl in _row_blocks(d.rows):
-            meat.add(d.subset(sl).tdot(w[sl]) @ t[:, :p])
+            psi = d.subset(sl).tdot(w[sl]) @ t[:, :p]
+            meat.add(psi)
+            if folded is not None and phases is not None:
+                folded += cluster_sums(psi, phases[0][sl], phases[1])
         meat.end_run()
+        by_phase.append(folded)
     rows = sum(d.rows for d in designs) * n
     cov = sandwich(bread, meat.meat(), rows, p)
+    # errors that repeat every period of the excitation, as for the ML gains
+    summed = gathered(by_phase, same_phases(designs))
+    if summed is not None:
+        cov = with_repeats(cov, bread, summed, lag, rows)[0]
     if gain_cov is not None:
         j_g = np.linalg.pinv(bread, hermitian=True) @ cross
         cov = cov + j_g @ np.asarray(gain_cov, float) @ j_g.T

@@ -18,6 +18,7 @@ from drivegain.config.payload import PAYLOAD_PARAMS
 from drivegain.config.robot import Robot, WristFriction
 from drivegain.dynamics.base import BaseParameters
 from drivegain.identify.estimate import r_factor
+from drivegain.identify.hac import phase_bins
 from drivegain.identify.prepare import PreparedRun, base_keys, payload_keys
 
 #: Samples per row block of :meth:`Design.factors`.
@@ -169,6 +170,21 @@ class Design:
 
     def subset(self, sl: slice) -> Design:
         return Design(self.run.rows(sl), self.base_idx, self.payload_idx, self.kt)
+
+
+def run_phases(d: Design) -> tuple[np.ndarray, int] | None:
+    """:func:`~drivegain.identify.hac.phase_bins` of the design's run."""
+    r = d.run
+    return phase_bins(r.t, r.period_s, r.rate_hz, r.phase_origin_s)
+
+
+def same_phases(designs: Sequence[Design]) -> bool:
+    """Whether the runs' phases are of one excitation and comparable: each run knows when the
+    excitation started, and all have the same period."""
+    runs = [d.run for d in designs]
+    return all(r.phase_origin_s is not None for r in runs) and (
+        runs[0].period_s is not None and all(r.period_s == runs[0].period_s for r in runs)
+    )
 
 
 def coupling_factor(robot: Robot) -> np.ndarray:

@@ -248,6 +248,18 @@ def sandwich(bread: np.ndarray, meat: np.ndarray, rows: int, params: int) -> np.
     return np.asarray(0.5 * (cov + cov.T))
 
 
+def gathered(folded: Sequence[np.ndarray | None], together: bool) -> list[np.ndarray] | None:
+    """The phase sums :func:`with_repeats` takes: None unless every run has them; with
+    ``together`` (runs of one excitation whose phases are measured from its start) added into
+    one, since a misfit at one phase is then correlated across the runs too."""
+    if not folded or any(f is None for f in folded):
+        return None
+    sums = [f for f in folded if f is not None]
+    if together and all(f.shape == sums[0].shape for f in sums):
+        return [np.sum(sums, axis=0)]
+    return sums
+
+
 def with_repeats(
     cov: np.ndarray, bread: np.ndarray, folded: Sequence[np.ndarray], lag: int, rows: int
 ) -> tuple[np.ndarray, np.ndarray]:

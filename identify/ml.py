@@ -47,10 +47,10 @@ from drivegain.config.payload import PAYLOAD_PARAMS, Payload
 from drivegain.errors import IdentificationError, UsageError
 from drivegain.identify import forked, mlreduce
 from drivegain.identify.autocov import ErrorAutocovariance, LaggedSums
-from drivegain.identify.design import Design
+from drivegain.identify.design import Design, run_phases, same_phases
 from drivegain.identify.eiv import InfluenceSums
 from drivegain.identify.estimate import cluster_sums
-from drivegain.identify.hac import bartlett_lag, lag1_autocorrelation, phase_bins, with_repeats
+from drivegain.identify.hac import bartlett_lag, gathered, lag1_autocorrelation, with_repeats
 from drivegain.identify.mlmodel import (
     RunArrays,
     Whitening,
@@ -437,9 +437,7 @@ def ml_fit(
     h_inv = np.linalg.pinv(last_r.T @ last_r, hermitian=True)
     # With ``influence``, the errors-in-variables test's sums from the same blocks.
     test_ls = linear if influence else None
-    phases = [
-        phase_bins(d.run.t, d.run.period_s, d.run.rate_hz, d.run.phase_origin_s) for d in (a, b)
-    ]
+    phases = [run_phases(d) for d in (a, b)]
     (sums, infl, folded), *rest = forked.map_items(
         "maximum-likelihood covariance",
         lambda k: _run_sums(theta, runs[k], kt_inv, whiten, h_inv, lag, test_ls, kt, phases[k]),
@@ -456,12 +454,8 @@ def ml_fit(
     bread = sums.bread
     rows = sum(r.samples for r in runs) * n
     repeat = None
-    summed = [f for f in by_phase if f is not None]
-    if len(summed) == len(runs):
-        if _same_phases(a, b) and summed[0].shape == summed[1].shape:
-            # one excitation, phases from its start in both runs: a misfit common to both
-            # (the same reversals) is correlated across them too
-            summed = [summed[0] + summed[1]]
+    summed = gathered(by_phase, same_phases([a, b]))
+    if summed is not None:
         cov, repeat = with_repeats(cov, bread, summed, lag, rows)
     chi, g, chi_u = split_theta(theta, nb, n)
     sources = runs[0].base_idx[a.nb :] - len(a.run.columns)  # columns after the named ones
@@ -486,18 +480,6 @@ def ml_fit(
         linear=linear,
         influence=None if infl is None else infl.meat(),
         repeat_scale=repeat,
-    )
-
-
-def _same_phases(a: Design, b: Design) -> bool:
-    """Whether runs a and b have phases of one excitation that can be compared: each knows
-    when the excitation started, and both have the same period."""
-    ra, rb = a.run, b.run
-    return (
-        ra.phase_origin_s is not None
-        and rb.phase_origin_s is not None
-        and ra.period_s is not None
-        and ra.period_s == rb.period_s
     )
 
 

@@ -18,7 +18,14 @@ from drivegain.identify.autocov import LaggedSums
 from drivegain.identify.crossval import split_factors, split_runs
 from drivegain.identify.design import ls_transform, make_design
 from drivegain.identify.eiv import eiv_test
-from drivegain.identify.hac import LongRunSum, bartlett_lag, long_run_covariance, sandwich
+from drivegain.identify.hac import (
+    LongRunSum,
+    bartlett_lag,
+    long_run_covariance,
+    phase_bins,
+    sandwich,
+    with_repeats,
+)
 from drivegain.identify.ml import ml_fit
 from drivegain.identify.mlmodel import Whitening, ls_rows, run_pair, whitened_block
 from drivegain.identify.mlstart import least_squares
@@ -209,7 +216,16 @@ def test_case_covariance_in_blocks_equals_the_whole_matrix_one(world, pair, monk
         dc = d.run.current[:, None, :] * d.kt[None, :, :] / sigma[None, :, None]
         cross += flat.T @ dc.reshape(-1, n)
     assert lag == bartlett_lag(resid)
-    ref = sandwich(bread, _meat_by_lags(scores, lag), sum(d.rows for d in designs) * n, p)
+    rows = sum(d.rows for d in designs) * n
+    ref = sandwich(bread, _meat_by_lags(scores, lag), rows, p)
+    # each run's whole score matrix summed by phase (the runs know their period)
+    folded = []
+    for d, sc in zip(designs, scores, strict=True):
+        phases = phase_bins(d.run.t, d.run.period_s, d.run.rate_hz, d.run.phase_origin_s)
+        assert phases is not None
+        folded.append(np.zeros((phases[1], p)))
+        np.add.at(folded[-1], phases[0], sc)
+    ref = with_repeats(ref, bread, folded, lag, rows)[0]
     j_g = np.linalg.pinv(bread, hermitian=True) @ cross
     ref = ref + j_g @ gain_cov @ j_g.T
     np.testing.assert_allclose(np.sqrt(np.diag(cov)), np.sqrt(np.diag(ref)), rtol=RTOL)

@@ -14,7 +14,7 @@ import pytest
 
 from drivegain.errors import UsageError
 from drivegain.identify.estimate import cluster_sums
-from drivegain.identify.hac import MIN_PERIODS, phase_bins, with_repeats
+from drivegain.identify.hac import MIN_PERIODS, gathered, phase_bins, with_repeats
 from drivegain.identify.ml import MIN_LAG
 
 PHASES = 80  # samples per period
@@ -120,3 +120,16 @@ def test_phase_bins_from_the_excitation_start_line_runs_up() -> None:
     # from their first samples instead, the two runs' bins would not line up
     first = phase_bins(7.3 + np.arange(200) / rate, period, rate)
     assert first is not None and not np.array_equal(first[0], a[0])
+
+
+def test_phase_sums_are_gathered_per_run_or_together() -> None:
+    a, b = np.ones((4, 2)), 2.0 * np.ones((4, 2))
+    assert gathered([a, None], together=True) is None  # a run without phases: none at all
+    assert gathered([], together=False) is None
+    each = gathered([a, b], together=False)
+    assert each is not None and len(each) == 2
+    (both,) = gathered([a, b], together=True) or []
+    np.testing.assert_array_equal(both, 3.0 * np.ones((4, 2)))
+    # different bins (another rate or period) cannot be added
+    apart = gathered([a, np.ones((5, 2))], together=True)
+    assert apart is not None and len(apart) == 2

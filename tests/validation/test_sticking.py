@@ -13,6 +13,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from drivegain.identify.cases import fit_case
 from drivegain.identify.design import Design, make_design
 from drivegain.identify.ml import ml_fit
 from drivegain.identify.mlmodel import run_arrays, run_pair
@@ -102,4 +103,23 @@ def test_the_stick_repeats_every_period_and_sigma_counts_it(stuck) -> None:
             np.testing.assert_array_equal(plain.gains, fit.gains)
             np.testing.assert_allclose(fit.gain_std, plain.gain_std * gains, rtol=1e-9)
         raised.append(gains)  # the per-run sums'
+    assert np.max(raised) > 1.2, raised
+
+
+def test_the_payload_sigma_counts_the_repeats_too(stuck) -> None:
+    """Case 2 (the payload with the identified gains): its Newey-West σ is raised the same way,
+    never lowered, and the parameters are the same."""
+    raised = []
+    for w, a, b in stuck:
+        fit = ml_fit(a, b, w.payload)
+        g = slice(fit.nb, fit.nb + a.n)
+        gain_cov = fit.covariance[g, g]
+        names = list(w.base.names)
+        with_period = fit_case("ours", [a, b], fit.gains, names, gain_cov=gain_cov)
+        bare = [replace(d, run=replace(d.run, period_s=None)) for d in (a, b)]
+        without = fit_case("ours", bare, fit.gains, names, gain_cov=gain_cov)
+        p1, p0 = with_period.payloads[0], without.payloads[0]
+        np.testing.assert_array_equal(p1.values, p0.values)
+        assert np.all(p1.std >= p0.std * (1 - 1e-12))
+        raised.append(p1.std / p0.std)
     assert np.max(raised) > 1.2, raised
