@@ -175,6 +175,13 @@ class MLFit:
         return self.std_all[self.nb : self.nb + self.gains.size]
 
     @property
+    def gain_repeat_scale(self) -> np.ndarray | None:
+        """The gains' entries of :attr:`repeat_scale` (None where it is)."""
+        if self.repeat_scale is None:
+            return None
+        return self.repeat_scale[self.nb : self.nb + self.gains.size]
+
+    @property
     def payload_std(self) -> np.ndarray:
         return self.std_all[self.nb + self.gains.size :]
 

@@ -8,6 +8,7 @@ from drivegain.config.payload import PAYLOAD_PARAMS
 from drivegain.config.robot import Robot
 from drivegain.identify.bootstrap import BootstrapSpread
 from drivegain.identify.gains import Estimator, GainIdentification
+from drivegain.identify.hac import MIN_PERIODS
 from drivegain.identify.reportfmt import PAYLOAD_KEYS
 from drivegain.identify.reportfmt import json_num as _num
 from drivegain.identify.reportfmt import short as _g
@@ -48,8 +49,8 @@ def ml_json(w: GainIdentification, robot: Robot) -> dict[str, Any]:
         "residual_lag1_autocorrelation": _num(ml.rho),
         "error_autocovariance": [_num(v) for v in ml.autocov.gamma],
         "gain_std_repeat_factor": None
-        if ml.repeat_scale is None
-        else [_num(f) for f in ml.repeat_scale[ml.nb : ml.nb + len(robot.joint_names)]],
+        if ml.gain_repeat_scale is None
+        else [_num(f) for f in ml.gain_repeat_scale],
         "payload_unknown": {
             PAYLOAD_KEYS[PAYLOAD_PARAMS.index(p)]: {"value": _num(v), "std": _num(s)}
             for p, v, s in zip(w.payload_names, w.payload_unknown, w.payload_std, strict=True)
@@ -133,12 +134,11 @@ def ml_lines(w: GainIdentification, robot: Robot) -> list[str]:
         + ".",
         "- Errors repeating every period of the excitation: "
         + (
-            "not checked (no known period, or a run spans under 1.5 of it)."
-            if ml.repeat_scale is None
+            f"not checked (no known period, or a run spans under {_g(MIN_PERIODS, 2)} of it)."
+            if ml.gain_repeat_scale is None
             else "gain σ raised × "
             + ", ".join(
-                f"{nm} {_g(float(f), 3)}"
-                for nm, f in zip(names, ml.repeat_scale[ml.nb : ml.nb + len(names)], strict=True)
+                f"{nm} {_g(float(f), 3)}" for nm, f in zip(names, ml.gain_repeat_scale, strict=True)
             )
             + ' (1: not raised; docs/model.md, "Errors that repeat every period").'
         ),

@@ -98,8 +98,8 @@ def test_the_stick_repeats_every_period_and_sigma_counts_it(stuck) -> None:
         per_run = [replace(d, run=replace(d.run, phase_origin_s=None)) for d in (a, b)]
         for designs in ((a, b), per_run):
             fit = ml_fit(*designs, w.payload)
-            assert fit.repeat_scale is not None
-            gains = fit.repeat_scale[fit.nb : fit.nb + a.n]
+            gains = fit.gain_repeat_scale
+            assert gains is not None
             np.testing.assert_array_equal(plain.gains, fit.gains)
             np.testing.assert_allclose(fit.gain_std, plain.gain_std * gains, rtol=1e-9)
         raised.append(gains)  # the per-run sums'
