@@ -6,6 +6,8 @@ One command, seeded:
     python benchmarks/validate.py --quick         # 10 seeds, 1-2 minutes
     python benchmarks/validate.py --seeds 40 --budget 600 --out /tmp/study
     python benchmarks/validate.py --scheduler tcp://HOST:PORT   # the seeds on a Dask cluster
+    python benchmarks/validate.py --from-results docs/validation/results.json   # the page
+        again from a run's numbers, with this tree's must-show targets (no simulation)
 
 1. Monte Carlo over noise seeds on the simulated TX-40 (simulated directly, no bus): the shipped
    optimised excitation (config/tx40-excitation.json) for run a (unloaded), run b (4.59 kg
@@ -41,7 +43,7 @@ from pathlib import Path
 
 from drivegain.errors import InputError
 from drivegain.validation.scenarios import DEFAULT_BUDGET_S, DEFAULT_SEEDS, QUICK_SEEDS, RESERVE_S
-from drivegain.validation.study import check_options, run_study
+from drivegain.validation.study import check_options, render_study, run_study
 
 # The checkout's docs/ and the real recording beside it: the defaults of a developer's run.
 REPO = Path(__file__).resolve().parents[1]
@@ -85,7 +87,26 @@ def main(argv: Sequence[str] | None = None) -> int:
         default=None,
         help="local worker processes without --scheduler (default: one per CPU)",
     )
+    parser.add_argument(
+        "--from-results",
+        type=Path,
+        default=None,
+        metavar="RESULTS_JSON",
+        help="instead of running the study: write the page again from a run's results.json "
+        "(must-show verdicts recomputed, numbers and figures kept)",
+    )
     args = parser.parse_args(argv)
+    cmd = "python benchmarks/validate.py" + (
+        " " + " ".join(sys.argv[1:]) if argv is None and len(sys.argv) > 1 else ""
+    )
+    if args.from_results is not None:
+        try:
+            render_study(args.from_results, args.out, command=cmd)
+        except InputError as exc:
+            print(f"validate.py: error: {exc}", file=sys.stderr)
+            return 2
+        print(f"wrote {args.out / 'validation.md'} from {args.from_results}")
+        return 0
     seeds = args.seeds if args.seeds is not None else (QUICK_SEEDS if args.quick else DEFAULT_SEEDS)
     workers = args.workers if args.workers is not None else _cpus()
     try:
@@ -93,9 +114,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     except InputError as exc:
         parser.error(exc.message)  # exits with status 2, as for any bad option
     real = None if args.real == "none" else Path(args.real)
-    cmd = "python benchmarks/validate.py" + (
-        " " + " ".join(sys.argv[1:]) if argv is None and len(sys.argv) > 1 else ""
-    )
     try:
         run_study(
             seeds=seeds,

@@ -72,6 +72,17 @@ def _classic(summary: dict[str, Any]) -> list[Scenario]:
     return first or scen
 
 
+def _rendered(meta: dict[str, Any]) -> str:
+    """The sentence saying the page was written again from the run's results, or nothing."""
+    again = meta.get("rendered")
+    if not again:
+        return ""
+    return (
+        f" The page was written again from those results by `{again['command']}` on "
+        f"{again['date']}, with the must-show verdicts of that tree's targets; no number changed."
+    )
+
+
 def _summary_section(data: dict[str, Any], world: World) -> str:
     """Title, provenance and the summary: the verdict of each scenario in a few lines."""
     joints = world.robot.joint_names
@@ -91,7 +102,7 @@ def _summary_section(data: dict[str, Any], world: World) -> str:
         + _capped(meta)
         + "). "
         "Every number on this page comes from that run; `docs/validation/results.json` holds "
-        "them all."
+        "them all." + _rendered(meta)
     )
     add("")
     add("## Summary")
@@ -555,6 +566,11 @@ def write_document(path: Path, figures: Path, data: dict[str, Any], world: World
     world
         The simulated robot.
     """
+    path.write_text(document_text(path, figures, data, world), encoding="utf-8")
+
+
+def document_text(path: Path, figures: Path, data: dict[str, Any], world: World) -> str:
+    """The text :func:`write_document` writes to ``path`` (same parameters)."""
     joints = world.robot.joint_names
     summary = data["monte_carlo"]
     tab = data["tables"]
@@ -577,4 +593,4 @@ def write_document(path: Path, figures: Path, data: dict[str, Any], world: World
         findings_text(summary, _classic(summary), tab),
     ]
     # Sections end with blank lines of their own; joining must not double them.
-    path.write_text("\n".join(sections).replace("\n\n\n", "\n\n") + "\n", encoding="utf-8")
+    return "\n".join(sections).replace("\n\n\n", "\n\n") + "\n"

@@ -2,6 +2,8 @@
 
 :func:`run_study` is what ``benchmarks/validate.py`` runs; it writes ``out/validation.md`` and
 ``out/validation/`` (figures and ``results.json``, every number of the page).
+:func:`render_study` writes the page again from a run's ``results.json`` without simulating
+(``validate.py --from-results``).
 """
 
 from __future__ import annotations
@@ -19,9 +21,10 @@ from typing import Any
 import numpy as np
 
 from drivegain.errors import InputError
+from drivegain.fileio import reading, write_atomic
 from drivegain.identify.blas import limited_blas_threads
 from drivegain.validation.cluster import check_scheduler, run_monte_carlo
-from drivegain.validation.document import write_document
+from drivegain.validation.document import document_text, write_document
 from drivegain.validation.figures import figure_coverage, figure_gain_errors, figure_payload
 from drivegain.validation.mustshow import must_show
 from drivegain.validation.paper import pipeline_tables
@@ -185,4 +188,58 @@ def run_study(
         )
         write_document(out / "validation.md", figures, data, world)
     progress(f"wrote {out / 'validation.md'} and {figures}/ in {elapsed / 60:.1f} min")
+    return data
+
+
+def render_study(results: Path, out: Path, command: str = "") -> dict[str, Any]:
+    """``out/validation.md`` written again from a study's ``results.json``, without simulating.
+
+    The must-show verdicts are recomputed from the run's summary with this tree's targets
+    (:func:`~drivegain.validation.mustshow.must_show`); every number stays the run's. The
+    figures need the per-seed results, so they are not drawn again: the page links those in
+    ``out/validation/``. ``out/validation/results.json`` gets the new verdicts and, in its
+    ``meta``, when and by what the page was written again. Both files are replaced whole.
+
+    Parameters
+    ----------
+    results
+        A ``results.json`` written by :func:`run_study` (it may be the one in ``out``).
+    out
+        Folder receiving ``validation.md`` and ``validation/results.json``.
+    command
+        The command line quoted in the document.
+
+    Returns
+    -------
+    dict
+        What ``results.json`` now holds.
+
+    Raises
+    ------
+    InputError
+        When ``results`` cannot be read or is not a study's results.
+    """
+    with reading(results, expected="a results.json"):
+        text = results.read_text(encoding="utf-8")
+    try:
+        data = json.loads(text)
+        summary, meta = data["monte_carlo"], data["meta"]
+        rate_hz = float(meta["rate_hz"])
+        checks = must_show(summary)
+    except (ValueError, KeyError, TypeError) as exc:
+        raise InputError(
+            f"not the results of a validation study ({type(exc).__name__}: {exc})", file=results
+        ) from None
+    data["must_show"] = checks
+    meta["rendered"] = {
+        "command": command or f"python benchmarks/validate.py --from-results {results}",
+        "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+    }
+    figures = out / "validation"
+    page = document_text(out / "validation.md", figures, data, make_world(rate_hz))
+    write_atomic(
+        figures / "results.json",
+        (json.dumps(data, indent=1, default=_json_default) + "\n").encode(),
+    )
+    write_atomic(out / "validation.md", page.encode())
     return data

@@ -231,6 +231,32 @@ def test_must_show_verdicts_on_a_made_up_summary() -> None:
     assert [c.passed for c in checks if c.target.startswith("RMS")] == [True]
 
 
+def test_per_joint_ls_is_compared_with_ours_given_the_same_payload() -> None:
+    """Per-joint LS uses all 10 payload parameters: under current noise it must be beaten by
+    ours given them too (ours_cad), joint by joint; the TLS by ours as it is."""
+    current = next(sc for sc in SCENARIOS if sc.key == "current-1pct")
+    methods = {m.key: _stats([0.2] * 6) for m in METHODS}
+    methods[OURS] = _stats([0.3] * 6)  # mass only: worse than per-joint LS everywhere
+    methods["tls"] = _stats([0.4] * 6)
+    methods["per_joint"] = _stats([0.25] * 6)
+    methods["ours_cad"] = _stats([0.1, 0.1, 0.1, 0.1, 0.1, 0.3])
+
+    def rms() -> tuple[str, bool | None]:
+        (c,) = [c for c in scenario_checks(current, {"methods": methods}) if "RMS" in c.target]
+        assert ("same payload information" in c.target) == ("ours_cad" in methods)
+        return c.value, c.passed
+
+    assert rms() == ("beaten on per-joint LS j6", False)
+    methods["ours_cad"]["rmse_pct"] = [0.1] * 6
+    assert rms() == ("never beaten", True)
+    methods["tls"]["rmse_pct"] = [0.4, 0.29, 0.4, 0.4, 0.4, 0.4]  # TLS against ours itself
+    assert rms() == ("beaten on TLS, unweighted, coupled V j2", False)
+    # Without the ablation in the run, per-joint LS is held against ours as it is.
+    del methods["ours_cad"]
+    methods["tls"]["rmse_pct"] = [0.4] * 6
+    assert rms()[1] is False and "per-joint LS j1" in rms()[0]
+
+
 def test_spread_interval_covers_the_true_spread() -> None:
     """Drawn z of unit spread: the 95 % interval holds 1 in about 95 % of 4000 draws."""
     rng = np.random.default_rng(8)

@@ -28,7 +28,7 @@ from drivegain.identify.signal import FilterSettings
 from drivegain.validation.estimators import METHODS, OURS
 from drivegain.validation.scenarios import SCENARIOS, Plant, Scenario
 from drivegain.validation.statistics import bootstrap_ratio, decimated_noise_factor, wilson
-from drivegain.validation.study import run_study
+from drivegain.validation.study import render_study, run_study
 from drivegain.validation.world import World
 
 SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "validate.py"
@@ -83,6 +83,46 @@ def test_files_written(study: tuple[dict, Path]) -> None:
     assert len(rows) == 2 + len(checks)  # header, rule, one row per check
     assert all(line.count("|") == 5 for line in rows)  # no stray "|" splitting a cell
     assert "Skipped: no real recording given" in doc
+
+
+def test_the_page_is_written_again_from_its_results(
+    study: tuple[dict, Path], tmp_path: Path
+) -> None:
+    """--from-results: the same page from the same numbers, the verdicts recomputed; a file
+    that is not a study's results is refused and nothing is written."""
+    data, out = study
+    again = tmp_path / "again"
+    (again / "validation").mkdir(parents=True)
+    saved = out / "validation" / "results.json"
+    stale = json.loads(saved.read_text(encoding="utf-8"))
+    stale["must_show"] = []  # what an older tree's targets might have left
+    (again / "validation" / "results.json").write_text(json.dumps(stale), encoding="utf-8")
+    rendered = render_study(again / "validation" / "results.json", again, command="render")
+    assert rendered["must_show"] == data["must_show"]
+    assert rendered["meta"]["rendered"]["command"] == "render"
+    old = (out / "validation.md").read_text(encoding="utf-8").splitlines()
+    new = (again / "validation.md").read_text(encoding="utf-8").splitlines()
+    assert len(new) == len(old)
+    differ = [i for i, (a, b) in enumerate(zip(old, new, strict=True)) if a != b]
+    assert differ == [2] and "written again from those results by `render`" in new[2]
+    on_disk = json.loads((again / "validation" / "results.json").read_text(encoding="utf-8"))
+    assert on_disk["must_show"] == data["must_show"]
+    # Bad input: one line naming the file, exit status 2 from the script, nothing written.
+    before = {p: p.read_bytes() for p in again.rglob("*") if p.is_file()}
+    bad = tmp_path / "bad.json"
+    for text in ("{not json", '{"meta": {}}'):
+        bad.write_text(text, encoding="utf-8")
+        with pytest.raises(InputError, match="not the results of a validation study"):
+            render_study(bad, again)
+    proc = subprocess.run(
+        [sys.executable, str(SCRIPT), "--from-results", str(bad), "--out", str(again)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 2 and str(bad) in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1
+    assert {p: p.read_bytes() for p in again.rglob("*") if p.is_file()} == before
 
 
 def test_our_gains_are_accurate_and_the_tables_hold_the_truth(study: tuple[dict, Path]) -> None:
