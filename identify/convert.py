@@ -35,7 +35,13 @@ from drivegain.fileio import reading
 from drivegain.formats.log import run_metadata, utc_iso
 from drivegain.formats.logwriter import write_run
 
-_DELIMITERS = (",", ";", "\t")
+#: Delimiters of the CSV files read, looked for in this order in the first line.
+CSV_DELIMITERS = (",", ";", "\t")
+
+
+def csv_delimiter(first_line: str) -> str:
+    """The delimiter of a CSV file (:data:`CSV_DELIMITERS`) from its first line; comma if none."""
+    return next((d for d in CSV_DELIMITERS if d in first_line), ",")
 
 
 def _is_float(text: str) -> bool:
@@ -44,6 +50,33 @@ def _is_float(text: str) -> bool:
     except ValueError:
         return False
     return True
+
+
+def is_header(fields: list[str]) -> bool:
+    """Whether a CSV row is a header row: not all of its fields are numbers."""
+    return not all(_is_float(f) for f in fields)
+
+
+def robot_and_payload(
+    robot: Robot | str | Path, payload: Payload | str | Path | None, *, acquisition: bool
+) -> tuple[Robot, Payload | None]:
+    """The robot and the payload of a conversion, loaded from their TOML files where given as
+    paths (``acquisition`` as for :func:`~drivegain.config.robot.load_robot`)."""
+    rob = robot if isinstance(robot, Robot) else load_robot(robot, acquisition=acquisition)
+    pay = (
+        payload if payload is None or isinstance(payload, Payload) else load_payload(payload, rob.n)
+    )
+    return rob, pay
+
+
+def toml_attachments(robot: Robot, payload: Payload | None) -> list[tuple[str, str, bytes]]:
+    """The robot's and the payload's TOML files, where they were loaded from one, as log
+    attachments ``(name, media type, data)``."""
+    attachments: list[tuple[str, str, bytes]] = []
+    for src in (robot.source, None if payload is None else payload.source):
+        if src is not None and Path(src).is_file():
+            attachments.append((Path(src).name, "application/toml", Path(src).read_bytes()))
+    return attachments
 
 
 def read_csv_columns(path: str | Path, n_columns: int) -> tuple[list[str], np.ndarray]:
@@ -71,14 +104,12 @@ def read_csv_columns(path: str | Path, n_columns: int) -> tuple[list[str], np.nd
         lines.pop()
     if not lines:
         raise DataError("empty file, expected CSV data", file=p)
-    first = lines[0]
-    delimiter = next((d for d in _DELIMITERS if d in first), ",")
-    reader = csv.reader(lines, delimiter=delimiter)
+    reader = csv.reader(lines, delimiter=csv_delimiter(lines[0]))
     values = array("d")
     header: list[str] | None = None
     rows = 0
     for lineno, fields in enumerate(reader, start=1):
-        if lineno == 1 and not all(_is_float(f) for f in fields):
+        if lineno == 1 and is_header(fields):
             header = [f.strip() for f in fields]
             if len(header) != n_columns:
                 raise DataError(
@@ -171,10 +202,7 @@ def convert_csv(
     """
     if not (math.isfinite(rate_hz) and rate_hz > 0):
         raise InputError(f"must be a positive number of Hz, got {rate_hz}", key="--rate")
-    rob = robot if isinstance(robot, Robot) else load_robot(robot)
-    pay = (
-        payload if payload is None or isinstance(payload, Payload) else load_payload(payload, rob.n)
-    )
+    rob, pay = robot_and_payload(robot, payload, acquisition=True)
     pos_path, cur_path, out_path = Path(positions_csv), Path(currents_csv), Path(out)
     if not out_path.parent.is_dir():
         raise InputError("output folder does not exist", file=out_path.parent, key="--out")
@@ -223,13 +251,7 @@ def convert_csv(
         extra["current_unit"] = "A"
     mtime = pos_path.stat().st_mtime
     meta = run_metadata(rob, run, pay, 1.0 / rate_hz, utc_iso(mtime), extra)
-    attachments: list[tuple[str, str, bytes]] = []
-    if rob.source is not None and Path(rob.source).is_file():
-        src = Path(rob.source)
-        attachments.append((src.name, "application/toml", src.read_bytes()))
-    if pay is not None and pay.source is not None and Path(pay.source).is_file():
-        src = Path(pay.source)
-        attachments.append((src.name, "application/toml", src.read_bytes()))
+    attachments = toml_attachments(rob, pay)
     t = np.arange(n_samples) / rate_hz
     start_ns = int(mtime) * 1_000_000_000
     log_time = start_ns + np.rint(np.arange(n_samples) * (1e9 / rate_hz)).astype(np.int64)

@@ -31,17 +31,17 @@ from pathlib import Path
 
 import numpy as np
 
-from drivegain.config.payload import Payload, load_payload
-from drivegain.config.robot import Robot, load_robot
+from drivegain.config.payload import Payload
+from drivegain.config.robot import Robot
 from drivegain.dynamics.transmission import motor_to_joint
 from drivegain.errors import DataError, InputError
 from drivegain.fileio import check_output
 from drivegain.formats.log import run_metadata, utc_iso
 from drivegain.formats.logwriter import write_run
+from drivegain.identify.convert import csv_delimiter, is_header, robot_and_payload, toml_attachments
 
 #: Seconds per unit of the time column.
 TIME_UNITS = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}
-_DELIMITERS = (",", ";", "\t")
 
 
 @dataclass(frozen=True)
@@ -137,9 +137,8 @@ def read_table(path: str | Path) -> Table:
     lines = [ln for ln in text.splitlines() if ln.strip()]
     if not lines:
         raise DataError("empty file, expected CSV data", file=p)
-    delimiter = next((d for d in _DELIMITERS if d in lines[0]), ",")
-    rows = list(csv.reader(lines, delimiter=delimiter))
-    header = not all(_is_float(f) for f in rows[0])
+    rows = list(csv.reader(lines, delimiter=csv_delimiter(lines[0])))
+    header = is_header(rows[0])
     width = len(rows[0])
     names = [f.strip() for f in rows[0]] if header else [str(c + 1) for c in range(width)]
     data = rows[1:] if header else rows
@@ -152,14 +151,6 @@ def read_table(path: str | Path) -> Table:
             )
     columns = {c: [row[c] for row in data] for c in range(width)}
     return Table(p, names, header, columns)
-
-
-def _is_float(text: str) -> bool:
-    try:
-        float(text)
-    except ValueError:
-        return False
-    return True
 
 
 def column_list(spec: str, n: int, table: Table, option: str) -> list[int]:
@@ -267,10 +258,7 @@ def convert_table(
         raise InputError(f"expected one of {', '.join(TIME_UNITS)}", key="--time-unit")
     if not run.strip():
         raise InputError("run label must not be empty", key="--run")
-    rob = robot if isinstance(robot, Robot) else load_robot(robot, acquisition=False)
-    pay = (
-        payload if payload is None or isinstance(payload, Payload) else load_payload(payload, rob.n)
-    )
+    rob, pay = robot_and_payload(robot, payload, acquisition=False)
     tab = read_table(table_path)
     n = rob.n
     t_all = tab.values(tab.index(time, "--time")) * TIME_UNITS[time_unit]
@@ -322,10 +310,6 @@ def convert_table(
     }
     mtime = tab.path.stat().st_mtime
     meta = run_metadata(rob, run, pay, period, utc_iso(mtime), extra)
-    attachments: list[tuple[str, str, bytes]] = []
-    for src in (rob.source, None if pay is None else pay.source):
-        if src is not None and Path(src).is_file():
-            attachments.append((Path(src).name, "application/toml", Path(src).read_bytes()))
     start_ns = int(mtime) * 1_000_000_000
     return write_run(
         out_path,
@@ -337,7 +321,7 @@ def convert_table(
         sp,
         cycle=np.arange(rel.size),
         log_time_ns=start_ns + np.rint(rel * 1e9).astype(np.int64),
-        attachments=attachments,
+        attachments=toml_attachments(rob, pay),
     )
 
 

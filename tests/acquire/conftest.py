@@ -162,6 +162,25 @@ def assert_at_rest(position: np.ndarray, period_s: float, cycles: int = 20) -> N
     assert np.all(np.abs(speed) < 0.05), f"still moving: {speed} rad/s"
 
 
+LongRun = Callable[..., tuple[subprocess.Popen[bytes], int, Path]]
+
+
+@pytest.fixture
+def long_run(tmp_path: Path, long_trajectory: Path) -> LongRun:
+    """``long_run(cfg, cycles, new_session=False)``: :func:`start_until` of ``drivegain acquire``
+    on :func:`long_trajectory` writing ``tmp_path/run.mcap``: the process, the cycles flushed
+    when it got going, and the path of the log."""
+    out = tmp_path / "run.mcap"
+
+    def start(
+        cfg: Path, cycles: int, *, new_session: bool = False
+    ) -> tuple[subprocess.Popen[bytes], int, Path]:
+        proc, seen = start_until(cfg, long_trajectory, out, cycles, new_session=new_session)
+        return proc, seen, out
+
+    return start
+
+
 @pytest.fixture
 def acquire_cli() -> SimpleNamespace:
     """``start``, ``wait_for_cycles`` and both at once (``start_until``) of a ``drivegain

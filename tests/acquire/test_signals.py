@@ -5,6 +5,7 @@ from __future__ import annotations
 import signal
 from collections.abc import Callable
 from pathlib import Path
+from subprocess import Popen
 from types import SimpleNamespace
 
 import numpy as np
@@ -16,14 +17,13 @@ from drivegain.formats.logreader import read_run
 
 
 def test_sigterm_stops_safely_and_finishes_the_log(
-    tmp_path: Path,
+    long_run: Callable[..., tuple[Popen[bytes], int, Path]],
     make_config: Callable[..., Path],
     long_trajectory: Path,
     acquire_cli: SimpleNamespace,
 ) -> None:
-    out = tmp_path / "run.mcap"
     cfg = make_config(acquisition="flush_interval_s = 0.2")
-    proc, _ = acquire_cli.start_until(cfg, long_trajectory, out, 600)
+    proc, _, out = long_run(cfg, 600)
     proc.send_signal(signal.SIGTERM)
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 0, err.decode()
@@ -46,15 +46,11 @@ def test_sigterm_stops_safely_and_finishes_the_log(
 
 
 def test_sigkill_leaves_a_part_with_every_flushed_cycle(
-    tmp_path: Path,
-    make_config: Callable[..., Path],
-    long_trajectory: Path,
-    acquire_cli: SimpleNamespace,
+    long_run: Callable[..., tuple[Popen[bytes], int, Path]], make_config: Callable[..., Path]
 ) -> None:
-    out = tmp_path / "run.mcap"
-    part = out.with_name("run.mcap.part")
     cfg = make_config(acquisition="flush_interval_s = 0.2")
-    proc, seen = acquire_cli.start_until(cfg, long_trajectory, out, 500)
+    proc, seen, out = long_run(cfg, 500)
+    part = out.with_name("run.mcap.part")
     proc.kill()
     proc.wait(timeout=30)
     assert proc.returncode == -signal.SIGKILL

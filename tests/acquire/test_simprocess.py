@@ -13,6 +13,7 @@ import signal
 import time
 from collections.abc import Callable
 from pathlib import Path
+from subprocess import Popen
 from types import SimpleNamespace
 
 import numpy as np
@@ -163,16 +164,14 @@ def test_the_shipped_realtime_config_runs(
 
 
 def test_a_signal_to_the_process_group_still_stops_the_robot_safely(
-    tmp_path: Path,
+    long_run: Callable[..., tuple[Popen[bytes], int, Path]],
     make_config: Callable[..., Path],
-    long_trajectory: Path,
     acquire_cli: SimpleNamespace,
 ) -> None:
     """Ctrl-C or a service stop reaches the drives' process too: it keeps serving until the
     master has decelerated and disabled them."""
-    out = tmp_path / "run.mcap"
     cfg = _ipc_config(make_config)
-    proc, _ = acquire_cli.start_until(cfg, long_trajectory, out, 400, new_session=True)
+    proc, _, out = long_run(cfg, 400, new_session=True)
     os.killpg(proc.pid, signal.SIGTERM)
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 0, err.decode()
@@ -183,14 +182,10 @@ def test_a_signal_to_the_process_group_still_stops_the_robot_safely(
 
 
 def test_the_drives_process_ends_when_the_master_is_killed(
-    tmp_path: Path,
-    make_config: Callable[..., Path],
-    long_trajectory: Path,
-    acquire_cli: SimpleNamespace,
+    long_run: Callable[..., tuple[Popen[bytes], int, Path]], make_config: Callable[..., Path]
 ) -> None:
-    out = tmp_path / "run.mcap"
     cfg = _ipc_config(make_config)
-    proc, _ = acquire_cli.start_until(cfg, long_trajectory, out, 200, new_session=True)
+    proc, _, out = long_run(cfg, 200, new_session=True)
     assert len(_group_alive(proc.pid)) == 2  # the master and the drives
     proc.kill()
     proc.communicate(timeout=30)
@@ -199,10 +194,7 @@ def test_the_drives_process_ends_when_the_master_is_killed(
 
 
 def test_killed_master_the_drives_stop_the_robot_on_their_own(
-    tmp_path: Path,
-    make_config: Callable[..., Path],
-    long_trajectory: Path,
-    acquire_cli: SimpleNamespace,
+    long_run: Callable[..., tuple[Popen[bytes], int, Path]], make_config: Callable[..., Path]
 ) -> None:
     """SIGKILL of the master process mid-motion, the drives in their own process in realtime:
     nothing tells them but the silence of the master's heartbeat. Each drive's consumer (0x1016,
@@ -210,8 +202,7 @@ def test_killed_master_the_drives_stop_the_robot_on_their_own(
     the drives' process reports both on its standard error (shared with the master), then
     ends."""
     path = make_config(clock="realtime", interface="drivegain-ipc", acquisition=RELAXED)
-    out = tmp_path / "run.mcap"
-    proc, _ = acquire_cli.start_until(path, long_trajectory, out, 400, new_session=True)
+    proc, _, _ = long_run(path, 400, new_session=True)
     assert len(_group_alive(proc.pid)) == 2  # the master and the drives
     proc.kill()
     # the drives' process holds the stderr pipe until it ends: generous bound, against a hang

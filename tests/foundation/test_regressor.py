@@ -171,9 +171,10 @@ def inverse_dynamics(
 CASES = [("tx40", WristFriction.PHYSICAL), ("tx40", WristFriction.PAPER), ("arm4", None)]
 
 
-def _case(
-    request: pytest.FixtureRequest, name: str, form: WristFriction | None
-) -> tuple[RobotModel, WristFriction]:
+@pytest.fixture(params=CASES, ids=["tx40-physical", "tx40-paper", "arm4"])
+def case(request: pytest.FixtureRequest) -> tuple[RobotModel, WristFriction]:
+    """A model of :data:`CASES` (a fixture's name) and its friction form (default the robot's)."""
+    name, form = request.param
     model = request.getfixturevalue(name)
     return model, form or model.robot.wrist_friction
 
@@ -183,11 +184,10 @@ def test_tx40_is_the_coupled_wrist(tx40: RobotModel) -> None:
     assert len(standard_names(tx40.robot)) == 86
 
 
-@pytest.mark.parametrize(("name", "form"), CASES)
 def test_regressor_times_chi_equals_rnea_plus_drive_terms(
-    request: pytest.FixtureRequest, name: str, form: WristFriction | None
+    case: tuple[RobotModel, WristFriction],
 ) -> None:
-    model, form = _case(request, name, form)
+    model, form = case
     rng = np.random.default_rng(11)
     # More samples than one internal chunk, and not a multiple of it.
     q, qd, qdd = random_states(model.robot, 2 * reg.CHUNK + 37, rng)
@@ -223,11 +223,10 @@ def test_tx40_truth_and_urdf_inertias(tx40: RobotModel, arm4: RobotModel) -> Non
     np.testing.assert_allclose(w @ chi, ref, rtol=0.0, atol=1e-9)
 
 
-@pytest.mark.parametrize(("name", "form"), CASES)
 def test_regressor_is_the_jacobian_of_the_inverse_dynamics(
-    request: pytest.FixtureRequest, name: str, form: WristFriction | None
+    case: tuple[RobotModel, WristFriction],
 ) -> None:
-    model, form = _case(request, name, form)
+    model, form = case
     rng = np.random.default_rng(3)
     q, qd, qdd = random_states(model.robot, 4, rng)
     chi = random_chi(model.robot, rng)
