@@ -9,7 +9,6 @@ what it was recording. :func:`write_run` writes a whole run from arrays.
 from __future__ import annotations
 
 import json
-import math
 import os
 import time
 from collections.abc import Mapping, Sequence
@@ -17,6 +16,7 @@ from pathlib import Path
 from types import TracebackType
 from typing import IO, Any
 
+import msgspec
 import numpy as np
 from mcap.writer import CompressionType, Writer
 
@@ -50,15 +50,18 @@ def _json_bytes(obj: Any) -> bytes:
     return json.dumps(obj, separators=(",", ":"), allow_nan=False, default=str).encode()
 
 
-def _vector(value: Any, n: int, name: str) -> list[float | None]:
+#: The messages of every cycle (``/joint_states``, ``/drives/raw``): msgspec encodes them about
+#: 15 times faster than ``json.dumps`` (the recorder thread shares the interpreter with the
+#: cycle loop). JSON has no NaN: it writes a non-finite float as null, which readers reject
+#: where the value is needed. Floats are the shortest text that reads back to the same value.
+_cycle_json = msgspec.json.Encoder().encode
+
+
+def _vector(value: Any, n: int, name: str) -> list[float]:
     arr = np.asarray(value, dtype=float).reshape(-1)
     if arr.size != n:
         raise DataError(f"has {arr.size} values, the log has {n} joints", key=name)
-    out: list[float | None] = arr.tolist()
-    if not np.isfinite(arr).all():
-        # JSON has no NaN: a non-finite value is stored as null, which readers reject where
-        # the value is needed.
-        out = [v if v is not None and math.isfinite(v) else None for v in out]
+    out: list[float] = arr.tolist()
     return out
 
 
@@ -221,7 +224,7 @@ class LogWriter:
             "setpoint": nulls if setpoint is None else _vector(setpoint, n, "setpoint"),
             "name": self._names,
         }
-        self._add(self._joint_states, log_time_ns, _json_bytes(msg))
+        self._add(self._joint_states, log_time_ns, _cycle_json(msg))
         buffer = self._column_buffer
         buffer.append(
             cycle,
@@ -255,7 +258,7 @@ class LogWriter:
 
     def write_raw(self, *, cycle: int, log_time_ns: int, raw: Mapping[str, Any]) -> None:
         """Append the raw drive values of one cycle to ``/drives/raw`` (JSON-serialisable)."""
-        self._add(self._raw, log_time_ns, _json_bytes({"cycle": int(cycle), "raw": dict(raw)}))
+        self._add(self._raw, log_time_ns, _cycle_json({"cycle": int(cycle), "raw": dict(raw)}))
 
     def write_event(
         self,
