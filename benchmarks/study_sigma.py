@@ -38,9 +38,6 @@ from scipy import stats
 if TYPE_CHECKING:
     from drivegain.validation.scenarios import Scenario
 
-#: Noise draws on a held trajectory use scenario seeds from here on (clear of the study's).
-FIRST_DRAW = 1000
-
 
 @dataclass(frozen=True)
 class Draws:
@@ -188,6 +185,10 @@ def study_seeds(scenario_key: str, first: int, stop: int, workers: int = 1) -> D
         z.shape[1],
     )
     return d
+
+
+#: Noise draws on a held trajectory use scenario seeds from here on (clear of the study's).
+FIRST_DRAW = 1000
 
 
 def study_trajectories(
