@@ -48,6 +48,9 @@ class Draws:
     seeds
         The scenario seed of each draw (its noise, and without a held trajectory its
         excitation).
+    failed
+        Seeds whose fit failed (an :class:`~drivegain.errors.IdentificationError`), left out
+        of every other field.
     trajectory
         The held trajectory seed, or None (each draw its own excitation).
     truth
@@ -59,6 +62,7 @@ class Draws:
     """
 
     seeds: list[int]
+    failed: list[int]
     trajectory: int | None
     truth: np.ndarray
     gains: np.ndarray
@@ -95,6 +99,7 @@ def _scenario(key: str) -> Scenario:
 def _identify(scenario_key: str, trajectory: int | None, seeds: list[int]) -> np.ndarray:
     """Identify runs a and b of each seed: rows of (gains, σ, repeat factors),
     (len(seeds), 3·joints). ``trajectory`` None: each seed on its own excitation."""
+    from drivegain.errors import IdentificationError
     from drivegain.identify.blas import limited_blas_threads
     from drivegain.identify.design import make_design
     from drivegain.identify.ml import ml_fit
@@ -113,7 +118,12 @@ def _identify(scenario_key: str, trajectory: int | None, seeds: list[int]) -> np
             a, b = (
                 make_design(prepare(world, r), world.base, world.form, world.robot) for r in runs
             )
-            fit = ml_fit(a, b, world.payload)
+            try:
+                fit = ml_fit(a, b, world.payload)
+            except IdentificationError:
+                # a failed fit is a result (the study counts it), not the end of the study
+                rows.append(np.full(3 * a.n, np.nan))
+                continue
             scale = fit.gain_repeat_scale
             repeat = np.ones(a.n) if scale is None else scale
             rows.append(np.concatenate([fit.gains, fit.gain_std, repeat]))
@@ -143,14 +153,24 @@ def identify_draws(
     for w, block in enumerate(blocks):
         rows[w::workers] = block  # back in seed order
     joints = rows.shape[1] // 3
+    ok = np.all(np.isfinite(rows), axis=1)
+    if ok.sum() < 2:
+        raise SystemExit(f"{scenario_key}: fewer than 2 of {len(seeds)} fits succeeded")
     return Draws(
-        seeds=list(seeds),
+        seeds=[s for s, good in zip(seeds, ok, strict=True) if good],
+        failed=[s for s, good in zip(seeds, ok, strict=True) if not good],
         trajectory=trajectory,
         truth=np.asarray(load_tx40().truth.gains, float),
-        gains=rows[:, :joints],
-        sigma=rows[:, joints : 2 * joints],
-        repeat=rows[:, 2 * joints :],
+        gains=rows[ok, :joints],
+        sigma=rows[ok, joints : 2 * joints],
+        repeat=rows[ok, 2 * joints :],
     )
+
+
+def _failures(d: Draws) -> str:
+    if not d.failed:
+        return ""
+    return f"; {len(d.failed)} fit(s) failed, left out (seeds {', '.join(map(str, d.failed))})"
 
 
 def _cells(values: np.ndarray, interval: np.ndarray | None = None) -> str:
@@ -178,6 +198,7 @@ def study_seeds(scenario_key: str, first: int, stop: int, workers: int = 1) -> D
     print(
         f"\n{scenario_key}, study seeds {first}-{stop - 1} ({len(d.seeds)}), "
         f"{time.perf_counter() - t0:.0f} s; pooled coverage of ±2σ {100 * coverage:.1f} %"
+        + _failures(d)
     )
     _table(
         f"seeds {first}-{stop - 1}",
@@ -204,7 +225,10 @@ def study_trajectories(
         about = d.gains - d.gains.mean(axis=0)
         scatter, interval = std_interval(about)
         mean_sigma = d.sigma.mean(axis=0)
-        print(f"\n{scenario_key}, trajectory {t}: {draws} draws, {time.perf_counter() - t0:.0f} s")
+        print(
+            f"\n{scenario_key}, trajectory {t}: {draws} draws, "
+            f"{time.perf_counter() - t0:.0f} s" + _failures(d)
+        )
         _table(
             f"trajectory {t}",
             [

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from drivegain.errors import IdentificationError
 from drivegain.validation.estimators import METHODS, OURS, run_seed
 from drivegain.validation.scenarios import SCENARIOS
 from drivegain.validation.world import make_world
@@ -47,6 +48,26 @@ def test_held_trajectory_draws(capsys: pytest.CaptureFixture[str]) -> None:
     alone = identify_draws(KEY, d.seeds, 5, workers=1)
     np.testing.assert_array_equal(alone.gains, d.gains)
     np.testing.assert_array_equal(alone.sigma, d.sigma)
+
+
+def test_a_failed_fit_is_counted_and_left_out(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from drivegain.identify import ml
+
+    fit, calls = ml.ml_fit, []
+
+    def second_fails(*args: object, **kwargs: object) -> ml.MLFit:
+        calls.append(1)
+        if len(calls) == 2:
+            raise IdentificationError("the gains grow without bound (test)")
+        return fit(*args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(ml, "ml_fit", second_fails)
+    d = study_seeds(KEY, 3, 6, workers=1)
+    assert d.seeds == [3, 5] and d.failed == [4] and d.gains.shape == (2, 6)
+    assert np.all(np.isfinite(d.gains)) and np.all(np.isfinite(d.sigma))
+    assert "1 fit(s) failed, left out (seeds 4)" in capsys.readouterr().out
 
 
 def test_the_spread_interval_covers_the_true_spread() -> None:
