@@ -17,6 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from drivegain.config.payload import PAYLOAD_PARAMS
+from drivegain.errors import UsageError
+from drivegain.identify.casenoise import CaseNoise, model_sums
 from drivegain.identify.design import (
     Design,
     joint_residual_sq,
@@ -114,6 +116,7 @@ def fit_case(
     factors: Sequence[np.ndarray] | None = None,
     gain_cov: np.ndarray | None = None,
     covariance: bool = True,
+    noise: CaseNoise | None = None,
 ) -> CaseResult:
     """IDIM-WLS of the base parameters and every loaded run's 10 payload parameters.
 
@@ -138,6 +141,10 @@ def fit_case(
     covariance
         False skips the HAC standard deviations (NaN, lag 0): a fit whose estimate alone is
         used (the cross-validation's) is spared two passes over its rows.
+    noise
+        The error model of the estimator that gave ``gains`` (:mod:`.casenoise`), for
+        standard deviations under it, with the gains' correlation with this fit's noise;
+        None: Newey-West, the gains taken as independent.
     """
     gains = np.asarray(gains, dtype=float)
     if factors is None:
@@ -158,7 +165,9 @@ def fit_case(
     y_sq = joint_residual_sq(factors, transforms, np.append(np.zeros(res.x.size), 1.0))
     nb = designs[0].nb
     if covariance:
-        cov, lag = case_covariance(designs, transforms, sigma, res.x, gain_cov, factors)
+        cov, lag = case_covariance(
+            designs, transforms, sigma, res.x, gain_cov, factors, noise=noise
+        )
         std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     else:
         std, lag = np.full(res.x.size, np.nan), 0
@@ -205,6 +214,8 @@ def case_covariance(
     x: np.ndarray,
     gain_cov: np.ndarray | None = None,
     factors: Sequence[np.ndarray] | None = None,
+    *,
+    noise: CaseNoise | None = None,
 ) -> tuple[np.ndarray, int]:
     """HAC covariance of an IDIM-WLS solution, plus the gains' share when they are uncertain.
 
@@ -223,12 +234,18 @@ def case_covariance(
         covariance ((N·m/A)², (n, n), or None) of :func:`fit_case`.
     factors
         Per run, the R factors of every joint's rows (computed when omitted).
+    noise
+        The error model of the estimator that gave the gains (:mod:`.casenoise`): the meat is
+        then that model's rather than Newey-West's, and the gains' covariance with this fit's
+        noise is added (with ``gain_cov``, which it needs).
 
     Returns
     -------
     covariance, lag
-        (p, p) in the order of ``x``; the lag in samples.
+        (p, p) in the order of ``x``; the lag in samples (the model's with ``noise``).
     """
+    if noise is not None and gain_cov is None:
+        raise UsageError("a noise model comes with the gains' covariance (gain_cov)")
     p = x.size
     n = designs[0].n
     if factors is None:
@@ -256,21 +273,34 @@ def case_covariance(
         folded = None if phases is None else np.zeros((phases[1], p))
         for sl in _row_blocks(d.rows):
             psi = d.subset(sl).tdot(w[sl]) @ t[:, :p]
-            meat.add(psi)
+            if noise is None:
+                meat.add(psi)
             if folded is not None and phases is not None:
                 folded += cluster_sums(psi, phases[0][sl], phases[1])
         meat.end_run()
         by_phase.append(folded)
     rows = sum(d.rows for d in designs) * n
-    cov = sandwich(bread, meat.meat(), rows, p)
+    h_inv = np.linalg.pinv(bread, hermitian=True)
+    s_uv = None
+    if noise is None:
+        cov = sandwich(bread, meat.meat(), rows, p)
+    else:
+        blocks = [_row_blocks(d.rows) for d in designs]
+        s_uu, s_uv, _ = model_sums(designs, transforms, sigma, p, noise, blocks)
+        cov = h_inv @ s_uu @ h_inv
+        cov = 0.5 * (cov + cov.T)
     # errors that repeat every period of the excitation, as for the ML gains
     summed = gathered(by_phase, same_phases(designs))
     if summed is not None:
         cov = with_repeats(cov, bread, summed, lag, rows)[0]
     if gain_cov is not None:
-        j_g = np.linalg.pinv(bread, hermitian=True) @ cross
+        j_g = h_inv @ cross
         cov = cov + j_g @ np.asarray(gain_cov, float) @ j_g.T
-    return cov, lag
+        if s_uv is not None:
+            # Cov(fit's error, gains' error) = H⁻¹ Σ Uᵀγ V, carried through J_g
+            both = h_inv @ s_uv @ j_g.T
+            cov = cov + both + both.T
+    return cov, (lag if noise is None else noise.lag)
 
 
 #: Samples per row block of :func:`case_covariance`'s scores (bounds the memory of long runs).

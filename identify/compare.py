@@ -29,6 +29,7 @@ import scipy.linalg
 
 from drivegain.config.payload import PAYLOAD_PARAMS, Payload
 from drivegain.errors import IdentificationError, InputError
+from drivegain.identify.casenoise import CaseNoise
 from drivegain.identify.design import Design
 from drivegain.identify.estimate import ls_from_factor, r_factor, tls_from_factor
 from drivegain.identify.gains import (
@@ -66,6 +67,9 @@ class GainEstimate:
     gain_cov
         Covariance of the gains, (N·m/A)², (n, n), when the method gives one (carried into the
         Case 2 payload fits, :func:`~drivegain.identify.cases.fit_case`).
+    noise
+        The method's error model, when it has one (:mod:`~drivegain.identify.casenoise`; for
+        the Case 2 payload fits' covariance).
     """
 
     method: str
@@ -74,6 +78,7 @@ class GainEstimate:
     coupled: bool
     details: dict[str, float] = field(default_factory=dict)
     gain_cov: np.ndarray | None = None
+    noise: CaseNoise | None = None
 
 
 def diagonal_design(d: Design) -> Design:
@@ -205,6 +210,7 @@ def _estimate(
         coupled=not np.allclose(a.kt, np.eye(n)),
         details=details,
         gain_cov=np.asarray(res.covariance[nb : nb + n, nb : nb + n]),
+        noise=res.noise,
     )
 
 

@@ -27,6 +27,11 @@ from drivegain.identify.blas import limited_blas_threads
 T = TypeVar("T")
 U = TypeVar("U")
 
+#: Scalar-equation count (samples × joints of the runs) from which independent work on long runs
+#: goes to a forked child: below it a fork and the pickled results cost more than they save
+#: (one 60 s run at 250 Hz, decimated, is about 1 500 samples).
+PARALLEL_EQUATIONS = 120_000
+
 
 def fork_is_safe() -> bool:
     """Whether a child may be forked here: ``fork`` exists, no other thread runs (a fork

@@ -20,11 +20,12 @@ import numpy as np
 from drivegain.config.payload import PAYLOAD_PARAMS, Payload
 from drivegain.errors import IdentificationError, InputError
 from drivegain.identify.bootstrap import BootstrapSpread, bootstrap_fit
+from drivegain.identify.casenoise import CaseNoise, case_noise
 from drivegain.identify.design import Design, ls_transform
 from drivegain.identify.eiv import EIVTest, eiv_test
 from drivegain.identify.estimate import ScaleError
 from drivegain.identify.ml import MLFit, ml_fit
-from drivegain.identify.mlmodel import run_pair
+from drivegain.identify.mlmodel import Whitening, run_pair
 from drivegain.identify.weighting import SIGMA_MAX_ITER, joint_sigma
 from drivegain.identify.wtls import WTLSFit, wtls_covariance, wtls_fit
 
@@ -92,6 +93,9 @@ class GainIdentification:
     bootstrap
         For ``ml`` with ``bootstrap`` replicates asked for: their spread, a second σ
         (:mod:`~drivegain.identify.bootstrap`).
+    noise
+        For ``ml``: its error model, for the covariance of the fits that use its gains
+        (:mod:`~drivegain.identify.casenoise`).
     """
 
     gains: np.ndarray
@@ -111,6 +115,7 @@ class GainIdentification:
     ml: MLFit | None = None
     eiv: EIVTest | None = None
     bootstrap: BootstrapSpread | None = None
+    noise: CaseNoise | None = None
 
     @property
     def alpha_flatness(self) -> float | None:
@@ -183,6 +188,15 @@ def estimate_gains(
         step(f"bootstrap: {bootstrap} replicates")
         # Each replicate is a whole fit: on two CPUs, half of them in a forked child.
         spread = bootstrap_fit(a, b, payload, fit, bootstrap, runs=runs, parallel=True)
+    noise = case_noise(
+        fit.theta,
+        fit.nb,
+        a.kt,
+        Whitening(fit.noise, fit.kappa),
+        fit.autocov.gamma,
+        fit.hessian,
+        runs,
+    )
     del runs
     warnings: list[str] = []
     if not fit.converged:
@@ -208,6 +222,7 @@ def estimate_gains(
         ml=fit,
         eiv=test,
         bootstrap=spread,
+        noise=noise,
     )
 
 

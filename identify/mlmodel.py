@@ -91,6 +91,15 @@ class RunArrays:
         return replace(self, v=self.v[sl], regressor=self.regressor.rows(sl), reversal=rev)
 
 
+def reversal_of(d: Design) -> np.ndarray | None:
+    """Each entry's share of reversal (:attr:`RunArrays.reversal`) of the run of ``d``, 0-1,
+    (N, n); None when no entry has any."""
+    if d.run.reversal_share is None:
+        return None
+    rev = np.clip(np.abs(d.run.reversal_share), 0.0, 1.0)
+    return rev if rev.any() else None
+
+
 def run_arrays(
     d: Design, payload: Payload, reversals: bool = True, coulomb: np.ndarray | None = None
 ) -> RunArrays:
@@ -111,11 +120,7 @@ def run_arrays(
         parameters (:attr:`~.prepare.PreparedRun.reversal_coulomb`; None: the run's own, empty:
         none). Two runs fitted together need the same (:func:`run_pair`).
     """
-    rev = None
-    if reversals and d.run.reversal_share is not None:
-        rev = np.clip(np.abs(d.run.reversal_share), 0.0, 1.0)
-        if not rev.any():
-            rev = None
+    rev = reversal_of(d) if reversals else None
     mask = payload.known_mask()
     unknown = np.flatnonzero(~mask)
     unknown_idx = known_idx = None

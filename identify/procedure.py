@@ -18,9 +18,10 @@ columns are weighted per drive (:func:`drivegain.identify.weighting.drive_noise_
 the gains' standard deviations come from a clustered sandwich covariance
 (:func:`drivegain.identify.wtls.wtls_covariance`).
 
-On long runs (:data:`PARALLEL_EQUATIONS`), the fits that do not need each other's results run
-two at a time, one in a forked child (:mod:`drivegain.identify.forked`): Case 1 beside the
-gains' estimation, the other friction form beside Case 2, validation and cross-validation.
+On long runs (:data:`~.forked.PARALLEL_EQUATIONS`), the fits that do not need each other's
+results run two at a time, one in a forked child (:mod:`drivegain.identify.forked`): Case 1
+beside the gains' estimation, the other friction form beside Case 2, validation and
+cross-validation.
 The results are identical to those of one process.
 
 Rows of one run and one joint are reduced once to a triangular factor; every estimator works on
@@ -334,7 +335,15 @@ def _run_procedure(problem: Problem, options: Options, step: Step) -> ProcedureR
         case2 = None
         if wtls is not None:
             step("Case 2: IDIM-WLS with the identified gains")
-            case2 = fit_case("case2", main, wtls.gains, names, factors, gain_cov=_gain_cov(wtls))
+            case2 = fit_case(
+                "case2",
+                main,
+                wtls.gains,
+                names,
+                factors,
+                gain_cov=_gain_cov(wtls),
+                noise=wtls.noise,
+            )
         final = case2 if case2 is not None else case1
         validation, designs = _validation_fits(
             problem, form, main, factors[0], case1, case2, wtls, step
@@ -370,14 +379,8 @@ def _run_procedure(problem: Problem, options: Options, step: Step) -> ProcedureR
     )
 
 
-#: Scalar-equation count (samples × joints of runs a and b) from which the independent fits
-#: run in a forked child (:mod:`.forked`): below it a fork and the pickled results cost more
-#: than they save (one 60 s run at 250 Hz, decimated, is about 1 500 samples).
-PARALLEL_EQUATIONS = 120_000
-
-
 def _long(main: list[Design]) -> bool:
-    return sum(d.rows * d.n for d in main) >= PARALLEL_EQUATIONS
+    return sum(d.rows * d.n for d in main) >= forked.PARALLEL_EQUATIONS
 
 
 def _form_fit(
@@ -435,6 +438,12 @@ def _validation_fits(
         validation[case1.name] = fit_case(case1.name, [a, c], case1.gains, names, factors)
         if case2 is not None:
             validation["case2"] = fit_case(
-                "case2", [a, c], case2.gains, names, factors, gain_cov=_gain_cov(wtls)
+                "case2",
+                [a, c],
+                case2.gains,
+                names,
+                factors,
+                gain_cov=_gain_cov(wtls),
+                noise=None if wtls is None else wtls.noise,
             )
     return validation, designs

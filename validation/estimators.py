@@ -351,11 +351,13 @@ def run_seed(
     out = SeedResult(seed=seed, scenario=scenario.key)
 
     def payload_fits(
-        key: str, designs: list[Design], gains: np.ndarray, gain_cov: np.ndarray | None = None
+        key: str, designs: list[Design], gains: np.ndarray, est: GainEstimate | None = None
     ) -> None:
         a, b, c = designs
-        fb = fit_case(key, [a, b], gains, names, gain_cov=gain_cov)
-        fc = fit_case(key, [a, c], gains, names, gain_cov=gain_cov)
+        cov = None if est is None else est.gain_cov
+        noise = None if est is None else est.noise
+        fb = fit_case(key, [a, b], gains, names, gain_cov=cov, noise=noise)
+        fc = fit_case(key, [a, c], gains, names, gain_cov=cov, noise=noise)
         out.payload_b[key] = fb.payloads[0].values
         out.payload_b_std[key] = fb.payloads[0].std
         out.payload_c[key] = fc.payloads[0].values
@@ -387,7 +389,7 @@ def run_seed(
         if m.key == PAPER:
             out.alpha = est.details.get("alpha", math.nan)
             out.block = est.details.get("block", math.nan)
-        payload_fits(m.key, designs, est.gains, est.gain_cov)
+        payload_fits(m.key, designs, est.gains, est)
     # Case 1: the a priori (manufacturer) gains, the true model.
     payload_fits("case1", coupled, robot.apriori_gains)
     return out

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from drivegain.errors import IdentificationError, InputError
-from drivegain.identify import crossval, forked, procedure
+from drivegain.identify import crossval, forked
 from drivegain.identify.design import make_design
 from drivegain.identify.procedure import Options, Problem, run_procedure
 
@@ -77,18 +77,23 @@ def test_forked_fits_equal_fits_in_turn(world, noisy_run, monkeypatch, fork_allo
         loaded=noisy_run(1, world.payload, rng, duration=12.0, label="loaded"),
         validation=noisy_run(2, world.validation, rng, duration=12.0, label="validation"),
     )
-    monkeypatch.setattr(procedure, "PARALLEL_EQUATIONS", 10**12)
+    monkeypatch.setattr(forked, "PARALLEL_EQUATIONS", 10**12)
     in_turn = run_procedure(problem, Options())
 
-    monkeypatch.setattr(procedure, "PARALLEL_EQUATIONS", 0)
+    monkeypatch.setattr(forked, "PARALLEL_EQUATIONS", 0)
     children = _record_children(monkeypatch)
     in_children = run_procedure(problem, Options())
     # Run a's cross-validation factors, Case 1, the least-squares start (while both runs are
-    # reduced at κ = 0 here), the reduction of run a at κ̂, the covariance's run a, then the
-    # other friction form
+    # reduced at κ = 0 here), the reduction of run a at κ̂, the covariance's run a, the other
+    # friction form, then run a's share of the covariance of Case 2 and of the validation's
     assert children[:3] == ["cross-validation factors", "Case 1 fit", "least-squares start"]
-    assert children[-2:] == ["maximum-likelihood covariance", "friction forms"]
-    assert len(children) > 5 and set(children[3:-2]) == {"maximum-likelihood reduction"}
+    assert children[-4:] == [
+        "maximum-likelihood covariance",
+        "friction forms",
+        "Case 2 covariance",
+        "Case 2 covariance",
+    ]
+    assert len(children) > 7 and set(children[3:-4]) == {"maximum-likelihood reduction"}
     assert len(in_children.forms) == 2
     _assert_same(in_children, in_turn, "result")
 
