@@ -37,7 +37,7 @@ import numpy as np
 from drivegain.errors import UsageError
 from drivegain.identify import forked
 from drivegain.identify.design import Design
-from drivegain.identify.mlmodel import RunArrays, Whitening, reversal_of, whitened_block
+from drivegain.identify.mlmodel import RunArrays, Whitening, reversal_of
 
 
 @dataclass(frozen=True)
@@ -234,6 +234,7 @@ def _run_sum(
     acc = ToeplitzSum(noise.gamma, params + n)
     ra = noise.run_of(d)
     rev = reversal_of(d) if ra is None else ra.reversal
+    coefs = None if ra is None else _share_coefficients(noise, ra)
     for sl in rows:
         sub = d.subset(sl)
         # Λ⁻² D_k T (rows, n, p): A_k once more over σ_j
@@ -243,10 +244,46 @@ def _run_sum(
             u *= np.sqrt(1.0 + w.kappa[None, :] * rev[sl])[:, :, None]
         f = np.zeros((a.shape[0], n, params + n))
         f[:, :, :params] = np.matmul(chol_t, u)
-        if ra is not None:
-            jw, _ = whitened_block(noise.theta, ra.rows(sl), noise.kt_inv, w)
-            f[:, :, params:] = jw @ noise.gain_influence
+        if ra is not None and coefs is not None:
+            f[:, :, params:] = _gain_share(noise, ra.rows(sl), coefs)
         # sub-blocks whose lagged copies stay in cache
         for k in range(0, f.shape[0], SUB_BLOCK):
             acc.add(f[k : k + SUB_BLOCK])
     return acc.total()
+
+
+def _share_coefficients(noise: CaseNoise, ra: RunArrays) -> np.ndarray:
+    """Coefficients of the regressor's columns, (c, n + 1): per gain, the columns' share of
+    ``W G`` (G = :attr:`CaseNoise.gain_influence`), then θ's (the model torque)."""
+    n, nb = noise.kt_inv.shape[0], noise.nb
+    g = noise.gain_influence
+    out = np.zeros((ra.regressor.c, n + 1))
+    # add.at: a column of the payload's link may also be a base column
+    np.add.at(out, ra.base_idx, np.column_stack([g[:nb], noise.theta[:nb]]))
+    if ra.unknown_idx is not None:
+        chi_u = noise.theta[nb + n :]
+        np.add.at(out, ra.unknown_idx, np.column_stack([g[nb + n :], chi_u]))
+    if ra.known_idx is not None:
+        np.add.at(out[:, n], ra.known_idx, ra.known_values)
+    return out
+
+
+def _gain_share(noise: CaseNoise, ra: RunArrays, coefs: np.ndarray) -> np.ndarray:
+    """``V_k = J̃_k G`` of the samples of ``ra``, (rows, n, n), without the whole Jacobian.
+
+    ``∂v̂_k/∂θ · G = M (W_k G_χ + W_u,k G_u) − diag(v̂_k/g) G_g`` with ``M = diag(1/g) K⁻¹``:
+    the regressor's series times ``coefs`` (:func:`_share_coefficients`) give ``W G`` and the
+    model torque in one product, then the fit's whitening.
+    """
+    n, nb = noise.kt_inv.shape[0], noise.nb
+    g = noise.gains
+    reg = ra.regressor
+    # each series' coefficients placed in its joint's block of n + 1 columns
+    by_joint = np.zeros((reg.joint.size, n, n + 1))
+    by_joint[np.arange(reg.joint.size), reg.joint] = coefs[reg.column]
+    both = (reg.series @ by_joint.reshape(reg.joint.size, -1)).reshape(-1, n, n + 1)
+    m = noise.kt_inv / g[:, None]
+    v_hat = both[:, :, n] @ m.T
+    share = np.matmul(m, both[:, :, :n])
+    share -= (v_hat / g[None, :])[:, :, None] * noise.gain_influence[nb : nb + n][None, :, :]
+    return noise.whitening.apply(share, ra.reversal)
