@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from enum import StrEnum
 
 import numpy as np
 
@@ -41,6 +42,17 @@ class PayloadEstimate:
     std: np.ndarray
     nominal: np.ndarray
     known: tuple[str, ...]
+
+
+class CaseCovariance(StrEnum):
+    """How a case's standard deviations were computed (report.json's ``covariance``)."""
+
+    NEWEY_WEST = "HAC (Newey-West, Bartlett kernel)"
+    NEWEY_WEST_GAINS = "HAC (Newey-West, Bartlett kernel) with the gains' covariance"
+    ERROR_MODEL = (
+        "the maximum-likelihood gains' error model (its whitened errors' autocovariance), "
+        "with the gains' covariance and their correlation with this fit"
+    )
 
 
 @dataclass(frozen=True)
@@ -73,7 +85,10 @@ class CaseResult:
     wls
         The weighted solution with its statistics (eq. 8-11, white noise assumed).
     lag
-        Newey-West lag of the HAC standard deviations, samples.
+        Newey-West lag of the HAC standard deviations, or with the gains' error model the
+        longest lag of its autocovariance, samples.
+    covariance
+        How the standard deviations were computed.
     """
 
     name: str
@@ -91,6 +106,7 @@ class CaseResult:
     rows: int
     wls: LSResult
     lag: int = 0
+    covariance: CaseCovariance = CaseCovariance.NEWEY_WEST
 
     def coefficients(self) -> tuple[np.ndarray, list[np.ndarray]]:
         return self.base, [p.values for p in self.payloads]
@@ -188,6 +204,11 @@ def fit_case(
         )
     r2, joint_rel = _joint_quality(designs, gains, chi, [p.values for p in payloads])
     rho = float(np.sqrt(res_sq.sum()))
+    how = CaseCovariance.NEWEY_WEST
+    if noise is not None:
+        how = CaseCovariance.ERROR_MODEL
+    elif gain_cov is not None:
+        how = CaseCovariance.NEWEY_WEST_GAINS
     return CaseResult(
         name=name,
         gains=gains,
@@ -204,6 +225,7 @@ def fit_case(
         rows=rows,
         wls=res,
         lag=lag,
+        covariance=how,
     )
 
 

@@ -102,8 +102,7 @@ def _case_json(case: CaseResult, robot: Robot, expressions: Mapping[str, str]) -
             for j, name in enumerate(robot.joint_names)
         ],
         "rows": case.rows,
-        "covariance": "HAC (Newey-West, Bartlett kernel)"
-        + (" with the gains' covariance" if case.name == "case2" else ""),
+        "covariance": str(case.covariance),
         "covariance_lag_samples": case.lag,
     }
 

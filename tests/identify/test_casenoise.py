@@ -17,7 +17,7 @@ import pytest
 
 from drivegain.errors import UsageError
 from drivegain.identify.casenoise import ToeplitzSum, case_noise, model_sums
-from drivegain.identify.cases import case_covariance, fit_case
+from drivegain.identify.cases import CaseCovariance, case_covariance, fit_case
 from drivegain.identify.design import ls_transform, make_design
 from drivegain.identify.gains import Estimator, estimate_gains
 from drivegain.identify.mlmodel import Whitening, reversal_of
@@ -163,6 +163,10 @@ def test_case2_under_the_model_and_its_refusals(world, noisy_pair) -> None:
     # the same estimate, another covariance of the same size
     np.testing.assert_array_equal(model.base, plain.base)
     assert model.lag == res.noise.lag
+    assert (model.covariance, plain.covariance) == (
+        CaseCovariance.ERROR_MODEL,
+        CaseCovariance.NEWEY_WEST_GAINS,
+    )
     known = world.payload.known_mask()
     ratio = model.payloads[0].std / plain.payloads[0].std
     assert np.all((ratio[~known] > 0.5) & (ratio[~known] < 2.0)), ratio

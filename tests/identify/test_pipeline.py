@@ -65,6 +65,9 @@ def test_report_json_follows_contracts_5(full_report: Path, world) -> None:
     assert isinstance(m["samples"], int) and m["samples"] > 1000
     # Extras: both cases, the validation payload, the α curve, cross-validation.
     assert set(doc["cases"]) == {"case1", "case2"}
+    # Case 2's σ under the ML gains' error model; Case 1's (a priori gains) Newey-West
+    assert doc["cases"]["case2"]["covariance"].startswith("the maximum-likelihood gains' error")
+    assert doc["cases"]["case1"]["covariance"] == "HAC (Newey-West, Bartlett kernel)"
     assert doc["validation"]["case2"]["mass"]["value"] == pytest.approx(1.686, rel=0.02)
     ml = doc["ml"]
     assert len(ml["noise_std"]) == 6 and all(_number(s["std"]) for s in ml["noise_std"])
