@@ -231,7 +231,7 @@ def _run_sum(
     n = noise.kt_inv.shape[0]
     w = noise.whitening
     chol_t = np.linalg.cholesky(w.noise).T  # Lᵀ
-    mix = noise.gains[:, None] * np.linalg.inv(noise.kt_inv).T  # diag(g) Kᵀ
+    mix = noise.gains[:, None] * d.kt.T  # diag(g) Kᵀ
     acc = ToeplitzSum(noise.gamma, params + n)
     ra = noise.run_of(d)
     rev = reversal_of(d) if ra is None else ra.reversal
@@ -278,11 +278,7 @@ def _gain_share(noise: CaseNoise, ra: RunArrays, coefs: np.ndarray) -> np.ndarra
     """
     n, nb = noise.kt_inv.shape[0], noise.nb
     g = noise.gains
-    reg = ra.regressor
-    # each series' coefficients placed in its joint's block of n + 1 columns
-    by_joint = np.zeros((reg.joint.size, n, n + 1))
-    by_joint[np.arange(reg.joint.size), reg.joint] = coefs[reg.column]
-    both = (reg.series @ by_joint.reshape(reg.joint.size, -1)).reshape(-1, n, n + 1)
+    both = ra.regressor.dot(coefs)  # (rows, n, n + 1)
     m = noise.kt_inv / g[:, None]
     v_hat = both[:, :, n] @ m.T
     share = np.matmul(m, both[:, :, :n])

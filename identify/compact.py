@@ -89,14 +89,17 @@ class CompactRegressor:
         return out
 
     def dot(self, coef: np.ndarray) -> np.ndarray:
-        """``dense @ coef`` for ``coef`` (c,): the torque of each joint, (N, n)."""
+        """``dense @ coef`` for ``coef`` (c,): the torque of each joint, (N, n); for ``coef``
+        (c, K), K such sums at once, (N, n, K)."""
         coef = np.asarray(coef, dtype=float)
-        # One product with a (k, n) matrix holding each series' coefficient in its joint's
-        # column: a single pass over the series (gathering each joint's takes three times as
+        k = self.joint.size
+        # One product with a (k, n·K) matrix holding each series' coefficients in its joint's
+        # columns: a single pass over the series (gathering each joint's takes three times as
         # long); the zeros add nothing.
-        by_joint = np.zeros((self.joint.size, self.n))
-        by_joint[np.arange(self.joint.size), self.joint] = coef[self.column]
-        return np.asarray(self.series @ by_joint)
+        by_joint = np.zeros((k, self.n, *coef.shape[1:]))
+        by_joint[np.arange(k), self.joint] = coef[self.column]
+        out = self.series @ by_joint.reshape(k, -1)
+        return np.asarray(out.reshape(-1, self.n, *coef.shape[1:]))
 
     def dense(self) -> np.ndarray:
         """The dense regressor, (N, n, c) (for tests and small runs)."""

@@ -46,6 +46,9 @@ def test_dot_is_the_dense_product(dense: np.ndarray) -> None:
     reg = CompactRegressor.from_dense(dense)
     coef = np.random.default_rng(5).normal(size=9)
     np.testing.assert_allclose(reg.dot(coef), dense @ coef, rtol=1e-14, atol=1e-14)
+    # several coefficient vectors at once: (N, n, K)
+    many = np.random.default_rng(6).normal(size=(9, 3))
+    np.testing.assert_allclose(reg.dot(many), dense @ many, rtol=1e-14, atol=1e-14)
 
 
 def test_wrong_shape_is_refused() -> None:
