@@ -214,8 +214,8 @@ def model_sums(
 
 
 #: Samples per :meth:`ToeplitzSum.add` in :func:`model_sums`, so that the filter's lagged copies
-#: stay in cache: on 9 472 samples of 6 × 76 columns with 16 lags, 96 took 0.053 s, 128 0.057-0.082,
-#: 256 0.108 and whole 2048-sample blocks 0.124 (best of 5, one thread).
+#: stay in cache (blocks of a few hundred samples and more ran about twice as slow; the whole
+#: command's cost is in ``benchmarks/bench_identify.py --baseline-ref``).
 SUB_BLOCK = 96
 
 
