@@ -520,7 +520,8 @@ def prepare_recording(
     carry_lo = 0
     for a, b in parts:
         lo, hi = max(0, a - pad), min(n_samples, b + pad)
-        window = np.empty((hi - lo, rows.size))
+        # column-major: each series' samples contiguous, as the decimation filters them
+        window = np.empty((hi - lo, rows.size), order="F")
         start = lo
         if carry is not None and carry_lo == lo:
             window[: carry.shape[0]] = carry
@@ -538,7 +539,7 @@ def prepare_recording(
         w_all[k0 : k0 + count, order] = wd[first : first + count]
         # The next window starts at b - pad: keep what this one computed from there on.
         carry_lo = max(0, b - pad)
-        carry = window[carry_lo - lo :].copy() if b < n_samples else None
+        carry = window[carry_lo - lo :].copy(order="F") if b < n_samples else None
         if progress is not None:
             progress(b - a)
     trim = settings.trim

@@ -340,10 +340,14 @@ def _stage_sos(q: int) -> np.ndarray:
 
 
 def _decimate_stage(x: np.ndarray, q: int) -> np.ndarray:
+    # Filtered along the last axis of x.T: SciPy's filters copy their input with that axis
+    # last and contiguous, which for a column-major x (the preparation's windows) is a plain
+    # copy instead of a transposition. Each column is filtered alone, so the numbers are the
+    # same either way.
     if q <= MAX_STAGE:
         # scipy.signal.decimate(x, q, ftype="iir", zero_phase=True) without its filter design
-        return np.asarray(sps.sosfiltfilt(_stage_sos(q).copy(), x, axis=0)[::q])
-    return np.asarray(sps.decimate(x, q, ftype="fir", axis=0, zero_phase=True))
+        return np.asarray(sps.sosfiltfilt(_stage_sos(q).copy(), x.T, axis=-1)[..., ::q].T)
+    return np.asarray(sps.decimate(x.T, q, ftype="fir", axis=-1, zero_phase=True).T)
 
 
 def decimated_length(n_samples: int, factor: int) -> int:
