@@ -250,3 +250,21 @@ def test_equal_columns_are_filtered_once_with_the_same_numbers(monkeypatch) -> N
     widths.clear()
     np.testing.assert_array_equal(decimate_columns(y, 6, same_as[:7]), decimate([y], 6, 0)[0])
     assert widths == [3, 1]
+
+
+@pytest.mark.parametrize("factor", [6, 17, 60])  # one IIR stage, decimate's FIR, two stages
+def test_decimation_is_the_same_for_any_memory_layout(factor: int) -> None:
+    """The preparation's windows are column-major; every layout and every column alone give
+    the numbers of scipy.signal.decimate along time, bit for bit."""
+    sps = pytest.importorskip("scipy.signal")
+    rng = np.random.default_rng(5)
+    x = rng.normal(size=(4000, 5)).cumsum(axis=0)
+    expect = x
+    for q in decimation_stages(factor):
+        ftype = "iir" if q <= signal.MAX_STAGE else "fir"
+        expect = sps.decimate(expect, q, ftype=ftype, axis=0, zero_phase=True)
+    for layout in (x, np.asfortranarray(x), x[:, ::-1].copy()[:, ::-1]):
+        np.testing.assert_array_equal(decimate_columns(layout, factor), expect)
+        (got,) = parallel_decimate([layout], factor, 0)
+        np.testing.assert_array_equal(got, expect)
+    np.testing.assert_array_equal(decimate_columns(x[:, 2:3].copy(), factor), expect[:, 2:3])
