@@ -365,6 +365,14 @@ def build_parser() -> argparse.ArgumentParser:
         "replicate costs about one fit)",
     )
     p.add_argument("--cutoff", type=POSITIVE, help="low-pass cut-off of positions, Hz")
+    p.add_argument(
+        "--sign-cutoff",
+        type=POSITIVE,
+        metavar="HZ",
+        help="low-pass cut-off of the velocity whose sign the Coulomb friction columns take, "
+        "Hz (default: --cutoff's); a few times --cutoff for drives in closed loop, whose "
+        "reversals the position filter blurs (docs/model.md)",
+    )
     p.add_argument("--decimate", type=DECIMATE, help="decimation factor")
     p.add_argument(
         "--current-delay",

@@ -165,6 +165,7 @@ def _filter_for(run: LoadedRun, req: IdentifyRequest) -> FilterSettings:
             cutoff_hz=req.cutoff,
             decimate=req.decimate,
             current_delay=req.current_delay,
+            sign_cutoff_hz=req.sign_cutoff,
         )
     except InputError as exc:
         raise InputError(f"run {run.label} ({run.path}): {exc}") from None
@@ -190,6 +191,7 @@ def _run_info(run: LoadedRun, prepared: PreparedRun) -> RunInfo:
             "decimate": st.decimate,
             "trim": st.trim,
             "current_delay": st.current_delay,
+            "sign_cutoff_hz": st.sign_cutoff,
         },
         notes=list(run.notes)
         + (

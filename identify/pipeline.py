@@ -73,6 +73,7 @@ class IdentifyRequest:
     estimator: str = "ml"  # --estimator: ml or paper (Estimator values)
     alpha: float | None = None
     cutoff: float | None = None
+    sign_cutoff: float | None = None  # --sign-cutoff: velocity of the Coulomb columns' signs
     decimate: int | None = None
     reference: Path | None = None
     progress: bool = True
@@ -175,6 +176,9 @@ def _check_request(req: IdentifyRequest) -> None:
             )
     if req.cutoff is not None and not (math.isfinite(req.cutoff) and req.cutoff > 0):
         raise InputError(f"must be a positive number of Hz, got {req.cutoff}", key="--cutoff")
+    sc = req.sign_cutoff
+    if sc is not None and not (math.isfinite(sc) and sc > 0):
+        raise InputError(f"must be a positive number of Hz, got {sc}", key="--sign-cutoff")
     if not (math.isfinite(req.current_delay) and 0.0 <= req.current_delay <= 1.0):
         raise InputError(
             f"must be between 0 and 1 sample, got {req.current_delay}", key="--current-delay"
@@ -450,6 +454,7 @@ def identify_command(args: argparse.Namespace) -> int:
         estimator=getattr(args, "estimator", None) or "ml",
         alpha=args.alpha,
         cutoff=args.cutoff,
+        sign_cutoff=getattr(args, "sign_cutoff", None),
         decimate=args.decimate,
         reference=getattr(args, "reference", None),
         progress=True,

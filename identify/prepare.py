@@ -165,6 +165,22 @@ def _sources(robot: Robot, columns: Sequence[str]) -> tuple[np.ndarray, list[tup
     return std, alt
 
 
+def _coulomb_column(robot: Robot, key: str, qd: np.ndarray) -> np.ndarray | None:
+    """Column ``key`` (N, n) of the regressor when it is a Coulomb column (``FcJ``, ``fcmM``
+    of any form), computed from the velocities ``qd``; None for any other column."""
+    name, _, form = key.partition("@")
+    if name.startswith("Fc") and name[2:].isdigit():
+        j = int(name[2:]) - 1
+        out = np.zeros((qd.shape[0], robot.n))
+        out[:, j] = np.sign(qd[:, j])
+        return out
+    if name.startswith("fcm"):
+        motors = [f"fcm{c.motor + 1}" for c in robot.couplings]
+        cc = coupled_coulomb_columns(robot, qd, WristFriction(form or WristFriction.PHYSICAL))
+        return cc[:, :, motors.index(name)]
+    return None
+
+
 def regressor_columns(
     model: RobotModel,
     q: np.ndarray,
@@ -172,11 +188,13 @@ def regressor_columns(
     qdd: np.ndarray,
     columns: Sequence[str],
     series: tuple[np.ndarray, np.ndarray] | None = None,
+    sign_qd: np.ndarray | None = None,
 ) -> np.ndarray:
     """The regressor restricted to ``columns`` (keys of :func:`stored_columns`).
 
     Returns (N, n, c); or, with ``series = (rows, cols)`` index arrays, only those entries,
-    (N, len(rows)).
+    (N, len(rows)). ``sign_qd`` (N, n), rad/s: the velocities whose signs the Coulomb columns
+    take (:attr:`~drivegain.identify.signal.FilterSettings.sign_cutoff_hz`); None: ``qd``.
     """
     robot = model.robot
     std, alt = _sources(robot, columns)
@@ -189,6 +207,11 @@ def regressor_columns(
             if form not in cache:
                 cache[form] = coupled_coulomb_columns(robot, qd, WristFriction(form))
             out[:, :, i] = cache[form][:, :, k]
+        if sign_qd is not None:
+            for i, key in enumerate(columns):
+                col = _coulomb_column(robot, key, np.atleast_2d(sign_qd))
+                if col is not None:
+                    out[:, :, i] = col
         return np.asarray(out)
     rows, cols = series
     out = w[:, rows, src[cols]]
@@ -197,6 +220,13 @@ def regressor_columns(
         if sel.size:
             extra = coupled_coulomb_columns(robot, qd, WristFriction(form))
             out[:, sel] = extra[:, rows[sel], k]
+    if sign_qd is not None:
+        for i, key in enumerate(columns):
+            sel = np.flatnonzero(cols == i)
+            if sel.size:
+                col = _coulomb_column(robot, key, np.atleast_2d(sign_qd))
+                if col is not None:
+                    out[:, sel] = col[:, rows[sel]]
     return np.asarray(out)
 
 
@@ -479,6 +509,12 @@ def prepare_recording(
     # Velocities and accelerations exist for a window at a time (five_point), except the
     # velocity of the whole run for a moment, to find the samples at rest.
     qf = derivatives(q, rate_hz, settings, source=src)[0]
+    # Positions for the Coulomb columns' signs, when their cut-off differs (FilterSettings).
+    qs = None
+    if settings.sign_cutoff != settings.cutoff_hz:
+        qs = derivatives(q, rate_hz, replace(settings, cutoff_hz=settings.sign_cutoff), source=src)[
+            0
+        ]
     f = settings.decimate
     pad = decimation_memory(f)
     at_random = _random_regressor(model, columns)
@@ -528,8 +564,14 @@ def prepare_recording(
             start = lo + carry.shape[0]
         for s in range(start, hi, CHUNK):
             e = min(hi, s + CHUNK)
+            sign_qd = None if qs is None else five_point(qs, rate_hz, s, e)[0]
             window[s - lo : e - lo] = regressor_columns(
-                model, qf[s:e], *five_point(qf, rate_hz, s, e), columns, (rows[order], cols[order])
+                model,
+                qf[s:e],
+                *five_point(qf, rate_hz, s, e),
+                columns,
+                (rows[order], cols[order]),
+                sign_qd=sign_qd,
             )
         # Decimated sample k of this window is input sample lo + k·f (lo is a multiple of f).
         first = (a - lo) // f

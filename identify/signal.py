@@ -66,6 +66,12 @@ class FilterSettings:
         current recorded at t_k stands for the torque at t_k − current_delay/rate. 0.5 for
         drives that report the current averaged over the period ending at the sample (the
         simulated drives do); the currents are interpolated onto the position samples.
+    sign_cutoff_hz
+        Cut-off of the low-pass whose velocity gives the Coulomb friction columns their sign,
+        Hz; None: ``cutoff_hz``. Only the sign's zero crossings matter there, and a drive's
+        loop moves them by tens of ms at each reversal (dwell, then breakaway): a cut-off a few
+        times ``cutoff_hz`` keeps their timing where the heavier filter of the other columns
+        shifts it (docs/model.md, "Where the Coulomb sign comes from").
     """
 
     cutoff_hz: float
@@ -73,6 +79,7 @@ class FilterSettings:
     decimate: int
     trim: int
     current_delay: float = 0.0
+    sign_cutoff_hz: float | None = None
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.cutoff_hz) and self.cutoff_hz > 0):
@@ -89,6 +96,14 @@ class FilterSettings:
             raise InputError(
                 f"must be between 0 and 1 sample, got {self.current_delay}", key="current_delay"
             )
+        sc = self.sign_cutoff_hz
+        if sc is not None and not (math.isfinite(sc) and sc > 0):
+            raise InputError(f"must be a positive number of Hz, got {sc}", key="sign_cutoff")
+
+    @property
+    def sign_cutoff(self) -> float:
+        """Cut-off of the velocity that signs the Coulomb columns, Hz."""
+        return self.cutoff_hz if self.sign_cutoff_hz is None else self.sign_cutoff_hz
 
     def output_rate(self, rate_hz: float) -> float:
         """Sample rate after decimation, Hz."""
@@ -100,12 +115,12 @@ def _check_rate(rate_hz: float) -> None:
         raise InputError(f"must be a positive number of Hz, got {rate_hz}", key="rate")
 
 
-def _check_cutoff(cutoff_hz: float, rate_hz: float) -> None:
+def _check_cutoff(cutoff_hz: float, rate_hz: float, key: str = "cutoff") -> None:
     if not (math.isfinite(cutoff_hz) and 0 < cutoff_hz < rate_hz / 2):
         raise InputError(
             f"cut-off {cutoff_hz} Hz must be between 0 and the Nyquist frequency "
             f"{rate_hz / 2:g} Hz (sample rate {rate_hz:g} Hz)",
-            key="cutoff",
+            key=key,
         )
 
 
@@ -185,6 +200,7 @@ def default_filter(
     decimate: int | None = None,
     order: int = 4,
     current_delay: float = 0.0,
+    sign_cutoff_hz: float | None = None,
 ) -> FilterSettings:
     """Filter settings derived from the sample rate and the trajectory's bandwidth.
 
@@ -206,6 +222,9 @@ def default_filter(
         Butterworth order.
     current_delay
         Age of the current samples, samples (:class:`FilterSettings`).
+    sign_cutoff_hz
+        Cut-off of the velocity that signs the Coulomb columns (``--sign-cutoff``), Hz, below
+        the Nyquist frequency; None: the position cut-off.
 
     Raises
     ------
@@ -244,13 +263,17 @@ def default_filter(
         )
     if isinstance(order, bool) or not isinstance(order, int) or order < 1:
         raise InputError(f"must be an integer >= 1, got {order!r}", key="order")
-    trim = _trim_for(rate_hz, cutoff_hz, order, decimate)
+    if sign_cutoff_hz is not None:
+        _check_cutoff(sign_cutoff_hz, rate_hz, key="sign_cutoff")
+    # The trim follows the position cut-off: a higher sign cut-off settles sooner.
+    trim = _trim_for(rate_hz, min(cutoff_hz, sign_cutoff_hz or cutoff_hz), order, decimate)
     return FilterSettings(
         cutoff_hz=float(cutoff_hz),
         order=order,
         decimate=decimate,
         trim=trim,
         current_delay=float(current_delay),
+        sign_cutoff_hz=None if sign_cutoff_hz is None else float(sign_cutoff_hz),
     )
 
 
