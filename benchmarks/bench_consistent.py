@@ -39,10 +39,10 @@ def main() -> int:
     from drivegain.dynamics.model import build_model
     from drivegain.identify.blas import limited_blas_threads
     from drivegain.identify.cases import fit_case
+    from drivegain.identify.columns import bases_for_forms
     from drivegain.identify.consistent_report import load_prior
     from drivegain.identify.convert import convert_csv
     from drivegain.identify.pipeline import IdentifyRequest, run_identify
-    from drivegain.identify.prepare import bases_for_forms
 
     robot_path = resource_path("tx40.toml")
     with tempfile.TemporaryDirectory() as tmp, limited_blas_threads(1):

@@ -153,7 +153,7 @@ def _sim_world(seed: int):
     from drivegain.config import load_payload, load_robot, load_truth, resource_path
     from drivegain.config.robot import WristFriction
     from drivegain.dynamics.model import build_model
-    from drivegain.identify.prepare import bases_for_forms, stored_columns
+    from drivegain.identify.columns import bases_for_forms, stored_columns
     from drivegain.identify.synth import exciting_sum_of_sines
 
     robot = load_robot(resource_path("tx40.toml"))

@@ -26,7 +26,7 @@ from drivegain.errors import InputError
 from drivegain.formats.log import run_metadata
 from drivegain.formats.logwriter import write_run
 from drivegain.identify.blas import limited_blas_threads
-from drivegain.identify.prepare import bases_for_forms
+from drivegain.identify.columns import bases_for_forms
 from drivegain.identify.synth import exciting_sum_of_sines, simulate_run
 
 ROBOT = "tx40"

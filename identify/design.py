@@ -17,9 +17,10 @@ import numpy as np
 from drivegain.config.payload import PAYLOAD_PARAMS
 from drivegain.config.robot import Robot, WristFriction
 from drivegain.dynamics.base import BaseParameters
+from drivegain.identify.columns import base_keys, payload_keys
 from drivegain.identify.estimate import r_factor
 from drivegain.identify.hac import phase_bins
-from drivegain.identify.prepare import PreparedRun, base_keys, payload_keys
+from drivegain.identify.prepare import PreparedRun
 
 #: Samples per row block of :meth:`Design.factors`.
 FACTOR_BLOCK = 4096

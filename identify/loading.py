@@ -34,13 +34,9 @@ from drivegain.dynamics.model import RobotModel
 from drivegain.errors import IdentificationError, InputError
 from drivegain.formats.trajectory import attached_fourier
 from drivegain.identify.blas import limited_blas_threads
+from drivegain.identify.columns import bases_for_forms, stored_columns
 from drivegain.identify.forked import fork_is_safe, send_error
-from drivegain.identify.prepare import (
-    PreparedRun,
-    bases_for_forms,
-    prepare_recording,
-    stored_columns,
-)
+from drivegain.identify.prepare import PreparedRun, prepare_recording
 from drivegain.identify.report import RunInfo
 from drivegain.identify.runs import LoadedRun, load_run
 from drivegain.identify.signal import FilterSettings, default_filter

@@ -24,12 +24,8 @@ from drivegain.excite.limits import check_limits
 from drivegain.excite.optimise import ExcitationSettings, Problem, random_trajectory
 from drivegain.excite.trajectory import load_trajectory
 from drivegain.formats.fourier import FourierTrajectory
-from drivegain.identify.prepare import (
-    PreparedRun,
-    bases_for_forms,
-    prepare_recording,
-    stored_columns,
-)
+from drivegain.identify.columns import bases_for_forms, stored_columns
+from drivegain.identify.prepare import PreparedRun, prepare_recording
 from drivegain.identify.signal import FilterSettings, default_filter
 from drivegain.identify.synth import simulate_run
 from drivegain.validation.scenarios import (

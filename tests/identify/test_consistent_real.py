@@ -18,11 +18,12 @@ from drivegain.config.robot import WristFriction
 from drivegain.dynamics.model import build_model
 from drivegain.dynamics.params import standard_names
 from drivegain.formats.logreader import read_run
+from drivegain.identify.columns import bases_for_forms
 from drivegain.identify.consistent import pseudo_inertia_eigenvalues
 from drivegain.identify.consistent_report import ConsistentRequest
 from drivegain.identify.export import exported_torque, load_exported
 from drivegain.identify.pipeline import IdentifyRequest, run_identify
-from drivegain.identify.prepare import bases_for_forms, filtered_derivatives
+from drivegain.identify.prepare import filtered_derivatives
 from drivegain.identify.signal import default_filter
 from drivegain.identify.synth import true_torque
 

@@ -12,14 +12,9 @@ from drivegain.dynamics.base import random_states
 from drivegain.dynamics.params import standard_names
 from drivegain.dynamics.regressor import stack_joint_major, standard_regressor
 from drivegain.identify import prepare
+from drivegain.identify.columns import coupled_coulomb_columns, regressor_columns
 from drivegain.identify.loading import trajectory_bandwidth
-from drivegain.identify.prepare import (
-    coupled_coulomb_columns,
-    filtered_derivatives,
-    five_point,
-    prepare_recording,
-    regressor_columns,
-)
+from drivegain.identify.prepare import filtered_derivatives, five_point, prepare_recording
 from drivegain.identify.signal import default_filter
 from drivegain.identify.synth import model_with_friction
 

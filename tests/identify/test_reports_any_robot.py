@@ -10,8 +10,8 @@ import pytest
 
 from drivegain.config.robot import WristFriction
 from drivegain.dynamics.model import build_model
+from drivegain.identify.columns import bases_for_forms, stored_columns
 from drivegain.identify.pipeline import IdentifyOutcome, _summary
-from drivegain.identify.prepare import bases_for_forms, stored_columns
 from drivegain.identify.procedure import Options, Problem, run_procedure
 from drivegain.identify.report import markdown_report, report_json
 from drivegain.identify.units import parameter_unit

@@ -17,7 +17,8 @@ from drivegain.cli import main
 from drivegain.config import resource_path
 from drivegain.dynamics.base import random_states
 from drivegain.errors import InputError
-from drivegain.identify.prepare import prepare_recording, regressor_columns
+from drivegain.identify.columns import regressor_columns
+from drivegain.identify.prepare import prepare_recording
 from drivegain.identify.signal import FilterSettings, default_filter, parallel_decimate
 
 RATE_HZ = 250.0

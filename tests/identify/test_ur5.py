@@ -11,7 +11,8 @@ import pytest
 from drivegain.config import load_payload, load_robot, load_truth, resource_path
 from drivegain.config.robot import WristFriction
 from drivegain.dynamics.model import build_model
-from drivegain.identify.prepare import bases_for_forms, prepare_recording, stored_columns
+from drivegain.identify.columns import bases_for_forms, stored_columns
+from drivegain.identify.prepare import prepare_recording
 from drivegain.identify.procedure import Options, Problem, run_procedure
 from drivegain.identify.signal import default_filter
 from drivegain.identify.synth import exciting_sum_of_sines, simulate_run
