@@ -38,6 +38,11 @@ BANDWIDTH_MULTIPLE = 10.0
 #: cut-off when the trajectory's bandwidth is unknown: rate / 20 (so that the central
 #: differences are accurate to about 1 % even at the cut-off), at most this, Hz
 MAX_DEFAULT_CUTOFF_HZ = 50.0
+#: multiple of the position cut-off used as the Coulomb sign's (FilterSettings.sign_cutoff_hz):
+#: 8 measured better than 4 on the simulated cell's closed-loop runs (docs/model.md)
+SIGN_CUTOFF_MULTIPLE = 8.0
+#: the sign's default cut-off stays below this fraction of the sample rate (Nyquist: 0.5)
+SIGN_CUTOFF_RATE_FRACTION = 0.4
 # Relative level below which a filter's impulse response counts as settled (border trimming).
 # filtfilt starts from the steady state of an odd extension, so the actual border error is far
 # below the impulse response's envelope: with 1e-3 here, the trimmed interior matches the
@@ -224,7 +229,8 @@ def default_filter(
         Age of the current samples, samples (:class:`FilterSettings`).
     sign_cutoff_hz
         Cut-off of the velocity that signs the Coulomb columns (``--sign-cutoff``), Hz, below
-        the Nyquist frequency; None: the position cut-off.
+        the Nyquist frequency; None: :data:`SIGN_CUTOFF_MULTIPLE` times the position cut-off,
+        at most :data:`SIGN_CUTOFF_RATE_FRACTION` of the rate (never below the cut-off).
 
     Raises
     ------
@@ -263,17 +269,20 @@ def default_filter(
         )
     if isinstance(order, bool) or not isinstance(order, int) or order < 1:
         raise InputError(f"must be an integer >= 1, got {order!r}", key="order")
-    if sign_cutoff_hz is not None:
-        _check_cutoff(sign_cutoff_hz, rate_hz, key="sign_cutoff")
+    if sign_cutoff_hz is None:
+        sign_cutoff_hz = max(
+            cutoff_hz, min(SIGN_CUTOFF_MULTIPLE * cutoff_hz, SIGN_CUTOFF_RATE_FRACTION * rate_hz)
+        )
+    _check_cutoff(sign_cutoff_hz, rate_hz, key="sign_cutoff")
     # The trim follows the position cut-off: a higher sign cut-off settles sooner.
-    trim = _trim_for(rate_hz, min(cutoff_hz, sign_cutoff_hz or cutoff_hz), order, decimate)
+    trim = _trim_for(rate_hz, min(cutoff_hz, sign_cutoff_hz), order, decimate)
     return FilterSettings(
         cutoff_hz=float(cutoff_hz),
         order=order,
         decimate=decimate,
         trim=trim,
         current_delay=float(current_delay),
-        sign_cutoff_hz=None if sign_cutoff_hz is None else float(sign_cutoff_hz),
+        sign_cutoff_hz=float(sign_cutoff_hz),
     )
 
 
