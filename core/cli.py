@@ -370,8 +370,8 @@ def build_parser() -> argparse.ArgumentParser:
         type=POSITIVE,
         metavar="HZ",
         help="low-pass cut-off of the velocity whose sign the Coulomb friction columns take, "
-        "Hz (default: --cutoff's); a few times --cutoff for drives in closed loop, whose "
-        "reversals the position filter blurs (docs/model.md)",
+        "Hz (default: 8 times the position cut-off, at most 0.4 times the sample rate): the "
+        "position filter blurs the stop of a closed-loop drive at each reversal (docs/model.md)",
     )
     p.add_argument("--decimate", type=DECIMATE, help="decimation factor")
     p.add_argument(

@@ -268,7 +268,8 @@ def _setup_section(data: dict[str, Any], world: World) -> str:
     fs = world.settings
     add(
         f"- Processing as for a real log: zero-phase Butterworth (order {fs.order}, "
-        f"{fs.cutoff_hz:g} Hz) on the quantised positions, central differences, parallel "
+        f"{fs.cutoff_hz:g} Hz) on the quantised positions, central differences, the Coulomb "
+        f"columns' sign from the velocity of the same filter at {fs.sign_cutoff:g} Hz, parallel "
         f"decimation by {fs.decimate} (to {world.rate_hz / fs.decimate:g} Hz), {fs.trim} samples "
         f"trimmed at each border: {tab['samples']['unloaded']} samples kept per run."
     )

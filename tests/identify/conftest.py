@@ -204,6 +204,7 @@ def noisy_run(world: World) -> Simulate:
         torque_noise: float | np.ndarray = TORQUE_NOISE,
         current_noise: float | np.ndarray = 0.0,
         label: str = "run",
+        sign_cutoff_hz: float | None = None,
     ) -> PreparedRun:
         t = np.arange(0.0, duration, 1.0 / rate)
         sim = simulate_noisy(
@@ -215,7 +216,7 @@ def noisy_run(world: World) -> Simulate:
             torque_noise=torque_noise,
             current_noise=current_noise,
         )
-        settings = default_filter(rate, BASE_HZ * HARMONICS)
+        settings = default_filter(rate, BASE_HZ * HARMONICS, sign_cutoff_hz=sign_cutoff_hz)
         return prepare_recording(
             world.model,
             world.columns,
