@@ -170,31 +170,27 @@ def regressor_columns(
     std, alt = _sources(robot, columns)
     w = standard_regressor(model, q, qd, qdd, WristFriction.PHYSICAL)
     src = np.where(std >= 0, std, 0)
+    vs = np.atleast_2d(qd if sign_qd is None else sign_qd)
+    # Columns not taken from w: the other forms' coupled Coulomb columns, and with a sign
+    # velocity of their own the Coulomb columns w took of qd. All are signs of vs.
+    extra: dict[int, np.ndarray] = {}
+    by_form: dict[str, np.ndarray] = {}
+    for i, form, k in alt:
+        if form not in by_form:
+            by_form[form] = coupled_coulomb_columns(robot, vs, WristFriction(form))
+        extra[i] = by_form[form][:, :, k]
+    if sign_qd is not None:
+        for i, key in enumerate(columns):
+            if i not in extra and (col := _coulomb_column(robot, key, vs)) is not None:
+                extra[i] = col
     if series is None:
         out = w[:, :, src]
-        cache: dict[str, np.ndarray] = {}
-        for i, form, k in alt:
-            if form not in cache:
-                cache[form] = coupled_coulomb_columns(robot, qd, WristFriction(form))
-            out[:, :, i] = cache[form][:, :, k]
-        if sign_qd is not None:
-            for i, key in enumerate(columns):
-                col = _coulomb_column(robot, key, np.atleast_2d(sign_qd))
-                if col is not None:
-                    out[:, :, i] = col
+        for i, col in extra.items():
+            out[:, :, i] = col
         return np.asarray(out)
     rows, cols = series
     out = w[:, rows, src[cols]]
-    for i, form, k in alt:
+    for i, col in extra.items():
         sel = np.flatnonzero(cols == i)
-        if sel.size:
-            extra = coupled_coulomb_columns(robot, qd, WristFriction(form))
-            out[:, sel] = extra[:, rows[sel], k]
-    if sign_qd is not None:
-        for i, key in enumerate(columns):
-            sel = np.flatnonzero(cols == i)
-            if sel.size:
-                col = _coulomb_column(robot, key, np.atleast_2d(sign_qd))
-                if col is not None:
-                    out[:, sel] = col[:, rows[sel]]
+        out[:, sel] = col[:, rows[sel]]
     return np.asarray(out)

@@ -174,11 +174,9 @@ def _check_request(req: IdentifyRequest) -> None:
                 "estimator and no --gains",
                 key="--bootstrap",
             )
-    if req.cutoff is not None and not (math.isfinite(req.cutoff) and req.cutoff > 0):
-        raise InputError(f"must be a positive number of Hz, got {req.cutoff}", key="--cutoff")
-    sc = req.sign_cutoff
-    if sc is not None and not (math.isfinite(sc) and sc > 0):
-        raise InputError(f"must be a positive number of Hz, got {sc}", key="--sign-cutoff")
+    for key, hz in (("--cutoff", req.cutoff), ("--sign-cutoff", req.sign_cutoff)):
+        if hz is not None and not (math.isfinite(hz) and hz > 0):
+            raise InputError(f"must be a positive number of Hz, got {hz}", key=key)
     if not (math.isfinite(req.current_delay) and 0.0 <= req.current_delay <= 1.0):
         raise InputError(
             f"must be between 0 and 1 sample, got {req.current_delay}", key="--current-delay"

@@ -331,9 +331,8 @@ def prepare_recording(
     # Positions for the Coulomb columns' signs, when their cut-off differs (FilterSettings).
     qs = None
     if settings.sign_cutoff != settings.cutoff_hz:
-        qs = derivatives(q, rate_hz, replace(settings, cutoff_hz=settings.sign_cutoff), source=src)[
-            0
-        ]
+        for_sign = replace(settings, cutoff_hz=settings.sign_cutoff)
+        qs = derivatives(q, rate_hz, for_sign, source=src)[0]
     f = settings.decimate
     pad = decimation_memory(f)
     at_random = _random_regressor(model, columns)

@@ -274,7 +274,8 @@ def default_filter(
             cutoff_hz, min(SIGN_CUTOFF_MULTIPLE * cutoff_hz, SIGN_CUTOFF_RATE_FRACTION * rate_hz)
         )
     _check_cutoff(sign_cutoff_hz, rate_hz, key="sign_cutoff")
-    # The trim follows the position cut-off: a higher sign cut-off settles sooner.
+    # The slower filter of the two sets the trim (a sign cut-off above the position's settles
+    # sooner; one below it, given by hand, later).
     trim = _trim_for(rate_hz, min(cutoff_hz, sign_cutoff_hz), order, decimate)
     return FilterSettings(
         cutoff_hz=float(cutoff_hz),
