@@ -134,6 +134,7 @@ def _load_one(
     path, label, payload = spec
     run = load_run(path, model.robot, label, payload, req.current)
     steps.describe(f"{label}: filters, regressor, decimation", run.q.shape[0])
+    asked = _filter_for(run, req)
     prepared = prepare_recording(
         model,
         columns,
@@ -141,7 +142,7 @@ def _load_one(
         q=run.q,
         current=run.current,
         rate_hz=run.rate_hz,
-        settings=_filter_for(run, req),
+        settings=asked,
         payload=run.payload,
         source=str(run.path),
         t0=run.t0,
@@ -149,7 +150,7 @@ def _load_one(
         period_s=trajectory_period(run.attachments),
     )
     prepared = dataclasses.replace(prepared, phase_origin_s=run.excitation_start_s)
-    return Loaded(prepared, _run_info(run, prepared), dict(run.meta))
+    return Loaded(prepared, _run_info(run, prepared, asked), dict(run.meta))
 
 
 def _filter_for(run: LoadedRun, req: IdentifyRequest) -> FilterSettings:
@@ -167,8 +168,20 @@ def _filter_for(run: LoadedRun, req: IdentifyRequest) -> FilterSettings:
         raise InputError(f"run {run.label} ({run.path}): {exc}") from None
 
 
-def _run_info(run: LoadedRun, prepared: PreparedRun) -> RunInfo:
+def _run_info(run: LoadedRun, prepared: PreparedRun, asked: FilterSettings) -> RunInfo:
     st = prepared.filter
+    notes = list(run.notes)
+    if prepared.rest_samples:
+        notes.append(
+            f"{prepared.rest_samples} samples with the robot at rest left out (and the "
+            "decimated samples whose filter window reaches them)"
+        )
+    if st is not None and st.sign_cutoff < asked.sign_cutoff:
+        notes.append(
+            f"Coulomb sign's velocity filtered at {st.sign_cutoff:g} Hz, not "
+            f"{asked.sign_cutoff:g} Hz: the encoder's step is coarse for these speeds "
+            "(give --sign-cutoff to choose)"
+        )
     return RunInfo(
         label=run.label,
         source=str(run.path),
@@ -188,16 +201,9 @@ def _run_info(run: LoadedRun, prepared: PreparedRun) -> RunInfo:
             "trim": st.trim,
             "current_delay": st.current_delay,
             "sign_cutoff_hz": st.sign_cutoff,
+            "sign_noise_limit": st.sign_noise_limit,
         },
-        notes=list(run.notes)
-        + (
-            [
-                f"{prepared.rest_samples} samples with the robot at rest left out (and the "
-                "decimated samples whose filter window reaches them)"
-            ]
-            if prepared.rest_samples
-            else []
-        ),
+        notes=notes,
     )
 
 

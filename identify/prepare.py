@@ -24,6 +24,7 @@ from drivegain.dynamics.model import RobotModel
 from drivegain.errors import DataError
 from drivegain.identify.columns import regressor_columns
 from drivegain.identify.compact import CompactRegressor
+from drivegain.identify.coulombsign import encoder_steps, sign_cutoff
 from drivegain.identify.reversals import reversal_entries, reversal_marks
 from drivegain.identify.signal import (
     FilterSettings,
@@ -328,6 +329,13 @@ def prepare_recording(
     # Velocities and accelerations exist for a window at a time (five_point), except the
     # velocity of the whole run for a moment, to find the samples at rest.
     qf = derivatives(q, rate_hz, settings, source=src)[0]
+    qd = np.empty_like(qf)
+    for s in range(0, n_samples, CHUNK):
+        qd[s : s + CHUNK] = five_point(qf, rate_hz, s, s + CHUNK)[0]
+    limit = settings.sign_noise_limit
+    if limit is not None and settings.sign_cutoff > settings.cutoff_hz:
+        hz = _sign_cutoff(model, q, qd, rate_hz, settings, limit)
+        settings = replace(settings, sign_cutoff_hz=hz)
     # Positions for the Coulomb columns' signs, when their cut-off differs (FilterSettings).
     qs = None
     if settings.sign_cutoff != settings.cutoff_hz:
@@ -352,9 +360,6 @@ def prepare_recording(
     # Decimate the currents once, whole: they are small. Same filter, so the same result.
     # The rest indicator goes through the same filter: a kept sample's filter window holds
     # (almost) no sample at rest.
-    qd = np.empty_like(qf)
-    for s in range(0, n_samples, CHUNK):
-        qd[s : s + CHUNK] = five_point(qf, rate_hz, s, s + CHUNK)[0]
     rest = at_rest(qd)
     zones, signs = reversal_marks(qd, model.robot)
     del qd
@@ -434,6 +439,30 @@ def prepare_recording(
         rest_samples=int(rest.sum()),
         reversal_share=zones_d[keep],
         reversal_coulomb=len(columns) + np.flatnonzero(used),
+    )
+
+
+def _sign_cutoff(
+    model: RobotModel,
+    q: np.ndarray,
+    qd: np.ndarray,
+    rate_hz: float,
+    settings: FilterSettings,
+    limit: float,
+) -> float:
+    """The Coulomb sign's cut-off for this run (:func:`~.coulombsign.sign_cutoff`), from each
+    drive's encoder step and RMS speed on the motor side, where the encoders are (a coupled
+    wrist's joint positions mix two motors' steps)."""
+    k = model.robot.transmission()
+    speed = np.sqrt(np.mean((qd @ k.T) ** 2, axis=0))
+    return sign_cutoff(
+        settings.sign_cutoff,
+        settings.cutoff_hz,
+        rate_hz,
+        settings.order,
+        encoder_steps(q @ k.T),
+        speed,
+        limit,
     )
 
 

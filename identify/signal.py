@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from drivegain.errors import DataError, InputError, UsageError
+from drivegain.identify.coulombsign import SIGN_QUANTUM_NOISE
 from drivegain.scipyimport import import_scipy
 
 # scipy.signal without its import-time docstring rewriting (most of its import time)
@@ -77,6 +78,10 @@ class FilterSettings:
         loop moves them by tens of ms at each reversal (dwell, then breakaway): a cut-off a few
         times ``cutoff_hz`` keeps their timing where the heavier filter of the other columns
         shifts it (docs/model.md, "Where the Coulomb sign comes from").
+    sign_noise_limit
+        When set, the preparation lowers ``sign_cutoff_hz`` by octaves (not below
+        ``cutoff_hz``) until each drive's encoder quantum adds at most this fraction of its RMS
+        speed to that velocity (:mod:`~drivegain.identify.coulombsign`); None: as given.
     """
 
     cutoff_hz: float
@@ -85,6 +90,7 @@ class FilterSettings:
     trim: int
     current_delay: float = 0.0
     sign_cutoff_hz: float | None = None
+    sign_noise_limit: float | None = None
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.cutoff_hz) and self.cutoff_hz > 0):
@@ -104,6 +110,9 @@ class FilterSettings:
         sc = self.sign_cutoff_hz
         if sc is not None and not (math.isfinite(sc) and sc > 0):
             raise InputError(f"must be a positive number of Hz, got {sc}", key="sign_cutoff")
+        lim = self.sign_noise_limit
+        if lim is not None and not (math.isfinite(lim) and lim > 0):
+            raise InputError(f"must be a positive fraction, got {lim}", key="sign_noise_limit")
 
     @property
     def sign_cutoff(self) -> float:
@@ -230,7 +239,8 @@ def default_filter(
     sign_cutoff_hz
         Cut-off of the velocity that signs the Coulomb columns (``--sign-cutoff``), Hz, below
         the Nyquist frequency; None: :data:`SIGN_CUTOFF_MULTIPLE` times the position cut-off,
-        at most :data:`SIGN_CUTOFF_RATE_FRACTION` of the rate (never below the cut-off).
+        at most :data:`SIGN_CUTOFF_RATE_FRACTION` of the rate (never below the cut-off), lowered
+        where the encoder is coarse (``sign_noise_limit`` :data:`SIGN_QUANTUM_NOISE`).
 
     Raises
     ------
@@ -269,7 +279,9 @@ def default_filter(
         )
     if isinstance(order, bool) or not isinstance(order, int) or order < 1:
         raise InputError(f"must be an integer >= 1, got {order!r}", key="order")
+    noise_limit = None  # a cut-off given by hand is used as given
     if sign_cutoff_hz is None:
+        noise_limit = SIGN_QUANTUM_NOISE
         sign_cutoff_hz = max(
             cutoff_hz, min(SIGN_CUTOFF_MULTIPLE * cutoff_hz, SIGN_CUTOFF_RATE_FRACTION * rate_hz)
         )
@@ -284,6 +296,7 @@ def default_filter(
         trim=trim,
         current_delay=float(current_delay),
         sign_cutoff_hz=float(sign_cutoff_hz),
+        sign_noise_limit=noise_limit,
     )
 
 
