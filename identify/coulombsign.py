@@ -6,9 +6,10 @@ crossings on a closed-loop drive's reversals. The price is the encoder's quantum
 velocity grows about as the cut-off to the power 1.5, and where it is a fair share of the
 speeds a joint passes through near its reversals the sign flickers and its timing jitters. On
 the validation study's exact tracking with a coarse 1e-3° joint quantum, 8 times the position
-cut-off doubled the gain errors of random excitations (0.21 → 0.64 % RMS over 100 seeds), for
+cut-off tripled the gain errors of random excitations (0.21 → 0.64 % RMS over 100 seeds), for
 nothing in return; the cell's motor encoders are fine enough that the same cut-off costs
-nothing and halves the closed-loop error (docs/model.md, "Where the Coulomb sign comes from").
+nothing and nearly halves the closed-loop error (docs/model.md, "Where the Coulomb sign comes
+from").
 
 So the sign's cut-off is lowered by octaves, not below the position cut-off, until the
 quantisation noise of every drive's encoder on that velocity is a small fraction
@@ -30,9 +31,9 @@ sps = import_scipy("scipy.signal")
 
 #: Largest quantisation noise on the sign's velocity, as a fraction of each drive's RMS speed,
 #: at which a cut-off is kept. Measured at 8 times the position cut-off (docs/model.md): the
-#: simulated cell's motor encoders 0.001-0.02 %, the real TX-40 recording 0.006-0.014 %, the
-#: study's exact tracking with a 1e-3° joint quantum 0.05-0.4 % (random excitations) where that
-#: cut-off cost accuracy; at 2 times the position cut-off those runs give 0.006-0.05 %.
+#: simulated cell's motor encoders 0.001-0.02 %, the real TX-40 recording 0.003 %, the study's
+#: exact tracking with a 1e-3° joint quantum 0.05-0.4 % on random excitations, where that
+#: cut-off cost accuracy (at 2 times the position cut-off: 0.006-0.05 %).
 SIGN_QUANTUM_NOISE = 5e-4
 # Position changes below this many radians are taken as float rounding, not an encoder step
 # (a coupled joint's position is computed from motor counts).

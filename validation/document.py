@@ -269,7 +269,9 @@ def _setup_section(data: dict[str, Any], world: World) -> str:
     add(
         f"- Processing as for a real log: zero-phase Butterworth (order {fs.order}, "
         f"{fs.cutoff_hz:g} Hz) on the quantised positions, central differences, the Coulomb "
-        f"columns' sign from the velocity of the same filter at {fs.sign_cutoff:g} Hz, parallel "
+        f"columns' sign from the velocity of the same filter at {fs.sign_cutoff:g} Hz (or "
+        "octaves lower, until the encoder's quantisation noise on it is within "
+        f"{100 * (fs.sign_noise_limit or 0):g} % of every drive's RMS speed), parallel "
         f"decimation by {fs.decimate} (to {world.rate_hz / fs.decimate:g} Hz), {fs.trim} samples "
         f"trimmed at each border: {tab['samples']['unloaded']} samples kept per run."
     )

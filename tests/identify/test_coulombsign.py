@@ -7,9 +7,13 @@ for: a sign that changes only where the motion reverses.
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
+from drivegain.cli import main
+from drivegain.config import resource_path
 from drivegain.errors import InputError
 from drivegain.identify.coulombsign import (
     SIGN_QUANTUM_NOISE,
@@ -137,3 +141,22 @@ def test_the_default_sign_changes_only_where_the_motion_reverses(world, quantum_
     else:
         assert chosen == auto.sign_cutoff
     np.testing.assert_array_equal(at_chosen, true_reversals)
+
+
+def test_the_report_says_when_the_sign_cutoff_came_down(run_logs, tmp_path) -> None:
+    """End to end through ``drivegain identify``: logs of a coarse encoder (1e-2° at the joint)
+    get a lower sign cut-off than 8 × the position cut-off, the report records it, the limit
+    and a note per run."""
+    logs = run_logs(tmp_path, {"a": 3, "b": 4}, seconds=12.0, quantum=float(np.deg2rad(1e-2)))
+    out = tmp_path / "report"
+    argv = ["identify", "--robot", str(resource_path("tx40.toml")), "--unloaded", str(logs["a"])]
+    argv += ["--loaded", str(logs["b"])]
+    argv += ["--payload", str(resource_path("payloads/calibrated-4590g.toml")), "--out", str(out)]
+    assert main([*argv, "--no-plots"]) == 0
+    runs = json.loads((out / "report.json").read_text())["runs"]
+    assert len(runs) == 2
+    for run in runs:
+        f = run["filter"]
+        assert f["sign_noise_limit"] == SIGN_QUANTUM_NOISE
+        assert f["cutoff_hz"] <= f["sign_cutoff_hz"] < 8 * f["cutoff_hz"]
+        assert any(n.startswith("Coulomb sign's velocity filtered at") for n in run["notes"])

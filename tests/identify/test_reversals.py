@@ -99,7 +99,8 @@ def _exact_pair(world, noisy_run, seed: int) -> tuple[Design, Design]:
     """Designs of an unloaded and a loaded 20 s run by exact tracking (no sticking).
 
     The Coulomb columns take the sign of the position cut-off's velocity (10 Hz): with this
-    coarse joint quantum (1e-3°) the default's (8 × that) flickers near reversals, where a
+    coarse joint quantum (1e-3°) a higher one (the default's 4 × here, after the encoder rule
+    of identify/coulombsign.py halved 8 ×) flickers near reversals, where a
     joint crosses an encoder step only every few samples, which is an excess there of its own
     (docs/model.md, "Where the Coulomb sign comes from").
     """

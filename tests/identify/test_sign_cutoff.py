@@ -18,6 +18,7 @@ from drivegain.config import resource_path
 from drivegain.dynamics.base import random_states
 from drivegain.errors import InputError
 from drivegain.identify.columns import regressor_columns
+from drivegain.identify.coulombsign import SIGN_QUANTUM_NOISE
 from drivegain.identify.prepare import prepare_recording
 from drivegain.identify.signal import FilterSettings, default_filter, parallel_decimate
 
@@ -137,5 +138,8 @@ def test_the_report_records_the_sign_cutoff(real_log, tmp_path) -> None:
         )
         doc = json.loads((out / "report.json").read_text())
         assert doc["runs"][0]["filter"]["sign_cutoff_hz"] == (sign_hz or 400.0)
+        # the encoder rule ran and kept 8 × (identify/coulombsign.py); a given cut-off skips it
+        limit = doc["runs"][0]["filter"]["sign_noise_limit"]
+        assert limit == (None if sign_hz else SIGN_QUANTUM_NOISE)
         fits[sign_hz] = oc.result.final.relative_error
     assert fits[None] == pytest.approx(fits[50.0], rel=0.02)
