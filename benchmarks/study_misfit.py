@@ -27,6 +27,9 @@ from dataclasses import replace
 
 import numpy as np
 
+#: Per run: scenario key, with noise or not, seed, relative error and σ̂ of our gains.
+Result = tuple[str, bool, int, np.ndarray, np.ndarray]
+
 
 @functools.cache
 def _world():
@@ -35,7 +38,7 @@ def _world():
     return make_world()
 
 
-def _one(task: tuple[str, bool, int]) -> tuple[str, bool, int, np.ndarray, np.ndarray]:
+def _one(task: tuple[str, bool, int]) -> Result:
     """Relative error and relative σ of our gains for one seed of a scenario, with or without
     its current-loop noise."""
     from drivegain.identify.blas import limited_blas_threads
@@ -60,8 +63,23 @@ def _row(name: str, values: np.ndarray, digits: int = 4) -> str:
     return f"{name:34s}" + "".join(f"{v:9.{digits}f}" for v in values)
 
 
-def study(seeds: int, trajectories: int, workers: int) -> None:
-    """Run the study and print its tables (see the module docstring)."""
+def study(seeds: int, trajectories: int, workers: int) -> list[Result]:
+    """Run the study and print its tables (see the module docstring).
+
+    Returns
+    -------
+    list of tuple
+        Per run (the noise-free ``closed-loop`` one first, then its noisy seeds, then the
+        noise-free random trajectories): scenario key, with noise or not, seed, relative
+        error and relative σ̂ of our gains (n,).
+
+    Raises
+    ------
+    ValueError
+        Fewer than 2 seeds or trajectories (no standard deviation).
+    """
+    if seeds < 2 or trajectories < 2:
+        raise ValueError(f"need 2 seeds and 2 trajectories or more, got {seeds}, {trajectories}")
     tasks = [("closed-loop", False, 0)]
     tasks += [("closed-loop", True, s) for s in range(seeds)]
     tasks += [("random-closed-loop", False, s) for s in range(trajectories)]
@@ -95,6 +113,7 @@ def study(seeds: int, trajectories: int, workers: int) -> None:
     print(_row("std", z.std(axis=0, ddof=1), 2))
     print(_row("within ±2σ̂₀", np.mean(np.abs(z) <= 2.0, axis=0), 2))
     print(f"\n{len(tasks)} runs of three recordings in {time.perf_counter() - t0:.0f} s")
+    return out
 
 
 def main() -> None:
@@ -103,6 +122,8 @@ def main() -> None:
     p.add_argument("--trajectories", type=int, default=20, help="random trajectories (20)")
     p.add_argument("--workers", type=int, default=2, help="processes (2)")
     a = p.parse_args()
+    if a.seeds < 2 or a.trajectories < 2 or a.workers < 1:
+        p.error("--seeds and --trajectories need 2 or more, --workers 1 or more")
     study(a.seeds, a.trajectories, a.workers)
 
 
