@@ -327,7 +327,8 @@ def prepare_recording(
     n_samples, n = q.shape
     src = source or None
     # Velocities and accelerations exist for a window at a time (five_point), except the
-    # velocity of the whole run for a moment, to find the samples at rest.
+    # velocity of the whole run for a moment, to find the samples at rest and the Coulomb
+    # sign's cut-off (its drives' RMS speeds).
     qf = derivatives(q, rate_hz, settings, source=src)[0]
     qd = np.empty_like(qf)
     for s in range(0, n_samples, CHUNK):
