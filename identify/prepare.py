@@ -333,10 +333,7 @@ def prepare_recording(
     qd = np.empty_like(qf)
     for s in range(0, n_samples, CHUNK):
         qd[s : s + CHUNK] = five_point(qf, rate_hz, s, s + CHUNK)[0]
-    limit = settings.sign_noise_limit
-    if limit is not None and settings.sign_cutoff > settings.cutoff_hz:
-        hz = _sign_cutoff(model, q, qd, rate_hz, settings, limit)
-        settings = replace(settings, sign_cutoff_hz=hz)
+    settings = _with_sign_cutoff(model, q, qd, rate_hz, settings)
     # Positions for the Coulomb columns' signs, when their cut-off differs (FilterSettings).
     qs = None
     if settings.sign_cutoff != settings.cutoff_hz:
@@ -443,20 +440,19 @@ def prepare_recording(
     )
 
 
-def _sign_cutoff(
-    model: RobotModel,
-    q: np.ndarray,
-    qd: np.ndarray,
-    rate_hz: float,
-    settings: FilterSettings,
-    limit: float,
-) -> float:
-    """The Coulomb sign's cut-off for this run (:func:`~.coulombsign.sign_cutoff`), from each
-    drive's encoder step and RMS speed on the motor side, where the encoders are (a coupled
-    wrist's joint positions mix two motors' steps)."""
+def _with_sign_cutoff(
+    model: RobotModel, q: np.ndarray, qd: np.ndarray, rate_hz: float, settings: FilterSettings
+) -> FilterSettings:
+    """``settings`` with the Coulomb sign's cut-off this run takes
+    (:func:`~.coulombsign.sign_cutoff`), when it has a noise limit: from each drive's encoder
+    step and RMS speed on the motor side, where the encoders are (a coupled wrist's joint
+    positions mix two motors' steps)."""
+    limit = settings.sign_noise_limit
+    if limit is None or settings.sign_cutoff <= settings.cutoff_hz:
+        return settings
     k = model.robot.transmission()
     speed = np.sqrt(np.mean((qd @ k.T) ** 2, axis=0))
-    return sign_cutoff(
+    hz = sign_cutoff(
         settings.sign_cutoff,
         settings.cutoff_hz,
         rate_hz,
@@ -465,6 +461,7 @@ def _sign_cutoff(
         speed,
         limit,
     )
+    return replace(settings, sign_cutoff_hz=hz)
 
 
 def _compact(a: np.ndarray, keep: np.ndarray) -> np.ndarray:
