@@ -16,9 +16,13 @@ and on variants of its plant that each remove one suspect:
     motor encoders with 100 times the counts, so the positions are nearly unquantised (the
     identification sees that robot too, as a user of such a robot would).
 
+Each payload is also fitted with the entries near reversals left out
+(:func:`drivegain.identify.cases.near_reversals`), where a stuck drive's torque is the
+model's worst: z over that fit's own σ̂, and its errors over the σ̂ of the fit on every entry.
+
 Printed per variant, for each payload parameter: the mean and the standard deviation of z over
-the seeds, and the gains' mean z. A cause shows as a mean of z that goes to about zero when it
-is removed (its standard error is 1/√seeds).
+the seeds, the pooled ±2σ coverage, and the gains' mean z. A cause shows as a mean of z that
+goes to about zero when it is removed (its standard error is 1/√seeds).
 
 Usage: python benchmarks/study_payload_bias.py [--seeds 20] [--workers 2] [--noise-free]
        [--variants cell,no-coulomb,fine-encoder]
@@ -31,16 +35,13 @@ import functools
 import time
 import warnings
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 VARIANTS = ("cell", "no-coulomb", "fine-encoder")
 #: Counts per turn of the ``fine-encoder`` variant, relative to the robot file's.
 FINE_ENCODER = 100
-
-#: Per seed: variant, seed, z of payload b (10,), z of payload c (10,), z of the gains (n,).
-Result = tuple[str, int, np.ndarray, np.ndarray, np.ndarray]
 
 
 @functools.cache
@@ -64,12 +65,36 @@ def _world(variant: str):
     return world
 
 
-def _one(task: tuple[str, int, bool]) -> Result:
+@dataclass(frozen=True)
+class SeedZ:
+    """z = (estimate − truth)/σ̂ of one seed on one variant.
+
+    ``b``, ``c``: payloads b and c (10,) by Case 2 on every entry (NaN for b's known mass);
+    ``b_left``, ``c_left``: the same with the entries near reversals left out, over their own
+    σ̂; ``b_left_full``, ``c_left_full``: those estimates' errors over the σ̂ of all entries
+    (how much nearer the truth they are); ``gains``: the gains (n,).
+    """
+
+    variant: str
+    seed: int
+    b: np.ndarray
+    c: np.ndarray
+    b_left: np.ndarray
+    c_left: np.ndarray
+    b_left_full: np.ndarray
+    c_left_full: np.ndarray
+    gains: np.ndarray
+
+
+def _one(task: tuple[str, int, bool]) -> SeedZ:
     """z of the payloads and gains of one seed of ``random-closed-loop`` on a variant."""
     from drivegain.identify.blas import limited_blas_threads
-    from drivegain.validation.estimators import METHODS, OURS, run_seed
-    from drivegain.validation.scenarios import SCENARIOS
-    from drivegain.validation.statistics import payload_z
+    from drivegain.identify.cases import fit_case, near_reversals, without_rows
+    from drivegain.identify.compare import ours_gains
+    from drivegain.identify.design import make_design
+    from drivegain.validation.estimators import seed_runs, seed_world
+    from drivegain.validation.scenarios import SCENARIOS, scenario_rng
+    from drivegain.validation.world import prepare
 
     variant, seed, noise_free = task
     sc = next(s for s in SCENARIOS if s.key == "random-closed-loop")
@@ -77,32 +102,50 @@ def _one(task: tuple[str, int, bool]) -> Result:
         sc = replace(sc, loop_noise_nm=0.0)
     world = _world(variant)
     with limited_blas_threads(1):
-        res = run_seed(world, seed, sc, [m for m in METHODS if m.key == OURS])
-    if OURS not in res.gains:
-        raise RuntimeError(f"{variant} seed {seed}: {res.failures}")
-    zb = payload_z([res], OURS, world.payload.values, "b")[0]
+        # the draws of validation.estimators.run_seed, step by step (the designs are needed)
+        w = seed_world(world, sc, seed)
+        runs = [prepare(w, r) for r in seed_runs(w, sc, scenario_rng(sc, seed))]
+        a, b, c = (make_design(r, w.base, w.form, w.robot) for r in runs)
+        est = ours_gains(a, b, w.payload, w.robot.apriori_gains)
+        names = list(w.base.names)
+        out: list[np.ndarray] = []
+        for loaded, truth in ((b, w.payload.values), (c, w.validation.values)):
+            pair = [a, loaded]
+            full = fit_case("case2", pair, est.gains, names, gain_cov=est.gain_cov, noise=est.noise)
+            left_out = [without_rows(d, near_reversals(d)) for d in pair]
+            left = fit_case(
+                "left", left_out, est.gains, names, gain_cov=est.gain_cov, noise=est.noise
+            )
+            f, lo = full.payloads[0], left.payloads[0]
+            out += [(f.values - truth) / f.std, (lo.values - truth) / lo.std]
+            out.append((lo.values - truth) / f.std)
     # b's known parameters (its mass) scale the gains: their Case 2 values are the given ones
-    zb[world.payload.known_mask()] = np.nan
-    zc = payload_z([res], OURS, world.validation.values, "c")[0]
-    truth = np.asarray(world.truth.gains, dtype=float)
-    zg = (res.gains[OURS] - truth) / res.std[OURS]
-    return variant, seed, zb, zc, zg
+    for z in out[:3]:
+        z[world.payload.known_mask()] = np.nan
+    zg = (est.gains - np.asarray(world.truth.gains, dtype=float)) / est.std
+    zb, zb_left, zb_lf, zc, zc_left, zc_lf = out
+    return SeedZ(variant, seed, zb, zc, zb_left, zc_left, zb_lf, zc_lf, zg)
 
 
 def _row(name: str, values: np.ndarray) -> str:
-    return f"{name:26s}" + "".join(f"{v:7.2f}" for v in values)
+    return f"{name:30s}" + "".join(f"{v:7.2f}" for v in values)
+
+
+def _coverage(z: np.ndarray) -> float:
+    """Share of the finite z within ±2, %."""
+    finite = z[np.isfinite(z)]
+    return float(np.mean(np.abs(finite) <= 2.0) * 100.0)
 
 
 def study(
     seeds: int, workers: int, variants: tuple[str, ...] = VARIANTS, noise_free: bool = False
-) -> list[Result]:
+) -> list[SeedZ]:
     """Run the study and print its table (see the module docstring).
 
     Returns
     -------
-    list of tuple
-        Per variant and seed: variant, seed, z of payload b and c (10,) each (NaN where b's
-        parameter is known), z of the gains (n,).
+    list of SeedZ
+        Per variant and seed.
 
     Raises
     ------
@@ -121,17 +164,28 @@ def study(
         out = list(pool.map(_one, tasks))
     noise = "without the current-loop noise" if noise_free else "with the current-loop noise"
     print(f"random-closed-loop {noise}, seeds 0-{seeds - 1}: z = (estimate − truth) / σ̂")
-    print(f"{'':26s}" + "".join(f"{p:>7s}" for p in PAYLOAD_PARAMS))
+    print("'left out': Case 2 without the entries near reversals, z over its own σ̂;")
+    print("'left out / σ̂ all': its errors over the σ̂ of the fit on every entry")
+    print(f"{'':30s}" + "".join(f"{p:>7s}" for p in PAYLOAD_PARAMS))
+    fields = (
+        ("", "b", "c"),
+        ("left out: ", "b_left", "c_left"),
+        ("left out / σ̂ all: ", "b_left_full", "c_left_full"),
+    )
     for v in variants:
-        mine = [o for o in out if o[0] == v]
-        for which, k in (("b", 2), ("c", 3)):
-            z = np.array([o[k] for o in mine])
-            with warnings.catch_warnings():
-                # b's known mass has no z at all: its empty column is NaN, not a warning
-                warnings.simplefilter("ignore", RuntimeWarning)
-                print(_row(f"{v}: {which} mean", np.nanmean(z, axis=0)))
-                print(_row(f"{v}: {which} std", np.nanstd(z, axis=0, ddof=1)))
-        zg = np.array([o[4] for o in mine])
+        mine = [o for o in out if o.variant == v]
+        for prefix, *names in fields:
+            for which, name in zip("bc", names, strict=True):
+                z = np.array([getattr(o, name) for o in mine])
+                with warnings.catch_warnings():
+                    # b's known mass has no z at all: its empty column is NaN, not a warning
+                    warnings.simplefilter("ignore", RuntimeWarning)
+                    print(_row(f"{v}: {prefix}{which} mean", np.nanmean(z, axis=0)))
+                    print(_row(f"{v}: {prefix}{which} std", np.nanstd(z, axis=0, ddof=1)))
+        for prefix, b, c in fields[:2]:
+            z = np.array([np.concatenate([getattr(o, b), getattr(o, c)]) for o in mine])
+            print(f"{v}: {prefix}payload ±2σ coverage {_coverage(z):.1f} %")
+        zg = np.array([o.gains for o in mine])
         print(_row(f"{v}: gains mean, j1-j{zg.shape[1]}", zg.mean(axis=0)))
     print(f"\n{len(tasks)} seeds of three recordings in {time.perf_counter() - t0:.0f} s")
     return out

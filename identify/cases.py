@@ -12,7 +12,7 @@ Also the fit quality measures every case reports (R² and relative residual norm
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from enum import StrEnum
 
 import numpy as np
@@ -124,6 +124,73 @@ def _payload_slots(designs: Sequence[Design]) -> list[int | None]:
     return slots
 
 
+#: An entry of a drive counts as near a reversal when more than this share of its decimation
+#: filter's window is (``PreparedRun.reversal_share``) ...
+REVERSAL_SHARE_LIMIT = 0.05
+#: ... and so do this many decimated samples either side of it (the drive sticks longer than
+#: its velocity stays below the mark: 0, 2 and 5 tried on random excitations in closed loop,
+#: docs/model.md).
+REVERSAL_MARGIN = 2
+
+
+def near_reversals(
+    d: Design, limit: float = REVERSAL_SHARE_LIMIT, margin: int = REVERSAL_MARGIN
+) -> np.ndarray:
+    """Which entries of each joint's equations lie near a reversal of a drive they carry.
+
+    Joint j's torque is carried by the drives its row of the coupled current matrix reaches
+    (``kt[j] != 0``); its entry k is near a reversal when one of those drives has more than
+    ``limit`` of its filter window near one at a sample within ``margin`` of k.
+
+    Parameters
+    ----------
+    d
+        The design.
+    limit
+        Share of the window (0-1).
+    margin
+        Samples either side (≥ 0).
+
+    Returns
+    -------
+    numpy.ndarray
+        (N, n) bool, all False when the run has no reversal shares.
+
+    Raises
+    ------
+    ValueError
+        ``limit`` outside [0, 1) or a negative ``margin``.
+    """
+    if not 0.0 <= limit < 1.0:
+        raise ValueError(f"limit must be in [0, 1), got {limit}")
+    if margin < 0:
+        raise ValueError(f"margin must be 0 or more, got {margin}")
+    n = d.n
+    out = np.zeros((d.rows, n), dtype=bool)
+    share = d.run.reversal_share
+    if share is None:
+        return out
+    marked = np.abs(share) > limit  # (N, drives)
+    for j in range(n):
+        rows = marked[:, d.kt[j] != 0.0].any(axis=1)
+        if margin:
+            window = np.ones(2 * margin + 1)
+            rows = np.convolve(rows.astype(float), window, mode="same") > 0.0
+        out[:, j] = rows
+    return out
+
+
+def without_rows(d: Design, drop: np.ndarray) -> Design:
+    """``d`` with the entries ``drop`` ((N, n) bool) left out of every fit of its rows."""
+    drop = np.asarray(drop, dtype=bool)
+    if drop.shape != (d.rows, d.n):
+        raise ValueError(f"drop must be ({d.rows}, {d.n}), got {drop.shape}")
+    weight = (~drop).astype(float)
+    if d.row_weight is not None:
+        weight *= d.row_weight
+    return replace(d, row_weight=weight)
+
+
 def fit_case(
     name: str,
     designs: Sequence[Design],
@@ -173,7 +240,7 @@ def fit_case(
         if s is not None and d.run.payload is not None:
             names += [f"{p}_{d.run.payload.name}" for p in PAYLOAD_PARAMS]
     sigma = joint_sigma(designs, factors, transforms)
-    rows = sum(d.rows for d in designs) * designs[0].n
+    rows = sum(d.entries(j) for d in designs for j in range(designs[0].n))
     r = stacked_factor(factors, transforms, 1.0 / sigma)
     res = ls_from_factor(r, rows, names)
     x_aug = np.append(res.x, -1.0)
@@ -301,7 +368,7 @@ def case_covariance(
                 folded += cluster_sums(psi, phases[0][sl], phases[1])
         meat.end_run()
         by_phase.append(folded)
-    rows = sum(d.rows for d in designs) * n
+    rows = sum(d.entries(j) for d in designs for j in range(n))
     h_inv = np.linalg.pinv(bread, hermitian=True)
     s_uv = None
     if noise is None:

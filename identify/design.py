@@ -32,12 +32,18 @@ class Design:
 
     ``W_payload`` holds the inertial columns of the payload's link (zero for an unloaded run);
     ``V_j`` is row j of the coupled current matrix (eq. 21).
+
+    ``row_weight`` (N, n), when given, multiplies row k of ``D_j`` by its entry (k, j) in every
+    product of the rows (:meth:`block`, :meth:`factors`, :meth:`dot`, :meth:`tdot`): 0 leaves
+    an entry out of a fit (:func:`without_rows`). The torques :meth:`torque` and
+    :meth:`model_torque` are the run's own, unweighted.
     """
 
     run: PreparedRun
     base_idx: np.ndarray
     payload_idx: np.ndarray | None
     kt: np.ndarray
+    row_weight: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -67,7 +73,15 @@ class Design:
         if self.payload_idx is not None:
             out[:, self.nb : self.nb + 10] = w.joint_columns(j, self.payload_idx)
         out[:, self.nb + 10 :] = self.run.current * self.kt[j][None, :]
+        if self.row_weight is not None:
+            out *= self.row_weight[:, j, None]
         return out
+
+    def entries(self, j: int) -> int:
+        """Rows of ``D_j`` that count (every row unless :attr:`row_weight` zeroes some)."""
+        if self.row_weight is None:
+            return self.rows
+        return int(np.count_nonzero(self.row_weight[:, j]))
 
     def factors(self, joints: Sequence[int] | None = None) -> np.ndarray:
         """R factors of every joint's ``D_j``: (n, m, m), ``R_jᵀR_j = D_jᵀD_j``.
@@ -96,6 +110,8 @@ class Design:
                         self.run.current[rows, coupled] * scale,
                     ]
                 )
+                if self.row_weight is not None:
+                    block *= self.row_weight[rows, j, None]
                 r = r_factor(np.vstack([r, block]))
             # cols ascend, so R of the kept columns placed in their rows 0..k-1 is triangular
             rj = out[j]
@@ -107,6 +123,8 @@ class Design:
         coupling), so that their factors are the same numbers: two friction forms' designs
         differ only in the joints a coupled motor's Coulomb column reaches."""
         if self.run is not other.run or self.m != other.m or not np.array_equal(self.kt, other.kt):
+            return False
+        if self.row_weight is not other.row_weight:
             return False
         mine, theirs = self._nonzero_columns(j), other._nonzero_columns(j)
         return all(np.array_equal(x, y) for x, y in zip(mine, theirs, strict=True))
@@ -149,12 +167,17 @@ class Design:
         if self.payload_idx is not None:
             np.add.at(dense, self.payload_idx, coef[nb : nb + 10])
         v_part = self.run.current @ (self.kt * coef[nb + 10 :][None, :]).T
-        return np.asarray(self.run.regressor.dot(dense) + v_part)
+        out = self.run.regressor.dot(dense) + v_part
+        if self.row_weight is not None:
+            out *= self.row_weight
+        return np.asarray(out)
 
     def tdot(self, weights: np.ndarray) -> np.ndarray:
         """``Σ_j w_kj D_j,k`` for every sample k, (N, m), for per-sample joint weights
         ``weights`` w (N, n): the transpose of :meth:`dot`, sample by sample."""
         w = np.asarray(weights, dtype=float)
+        if self.row_weight is not None:
+            w = w * self.row_weight
         reg = self.run.regressor
         # Each regressor series (joint j, column c) adds w_kj times itself to the columns of
         # D that stand for c: one product with that 0/1 (series, m) map.
@@ -170,7 +193,8 @@ class Design:
         return np.asarray(out)
 
     def subset(self, sl: slice) -> Design:
-        return Design(self.run.rows(sl), self.base_idx, self.payload_idx, self.kt)
+        weight = None if self.row_weight is None else self.row_weight[sl]
+        return Design(self.run.rows(sl), self.base_idx, self.payload_idx, self.kt, weight)
 
 
 def run_phases(d: Design) -> tuple[np.ndarray, int] | None:

@@ -50,7 +50,7 @@ def joint_sigma(
     n = designs[0].n
     sigma = np.empty(n)
     for j in range(n):
-        rows = sum(d.rows for d in designs)
+        rows = sum(d.entries(j) for d in designs)
         r = r_factor(np.vstack([f[j] @ t for f, t in zip(factors, transforms, strict=True)]))
         sigma[j] = group_sigma_from_factor(r, rows).sigma
     return floor_sigma(sigma)

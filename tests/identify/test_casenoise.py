@@ -17,7 +17,13 @@ import pytest
 
 from drivegain.errors import UsageError
 from drivegain.identify.casenoise import ToeplitzSum, case_noise, model_sums
-from drivegain.identify.cases import CaseCovariance, case_covariance, fit_case
+from drivegain.identify.cases import (
+    CaseCovariance,
+    case_covariance,
+    fit_case,
+    near_reversals,
+    without_rows,
+)
 from drivegain.identify.design import ls_transform, make_design
 from drivegain.identify.gains import Estimator, estimate_gains
 from drivegain.identify.mlmodel import Whitening, reversal_of
@@ -85,12 +91,19 @@ def test_toeplitz_sum_refuses_bad_shapes() -> None:
         ToeplitzSum(np.ones(2), 2).add(np.ones((4, 3)))
 
 
-def test_fit_share_matches_a_monte_carlo_of_the_least_squares(world, noisy_pair) -> None:
+@pytest.mark.parametrize("left_out", [False, True], ids=["all-rows", "near-reversals-left-out"])
+def test_fit_share_matches_a_monte_carlo_of_the_least_squares(
+    world, noisy_pair, left_out: bool
+) -> None:
     """Draw current errors from the model, push them through the weighted least squares of
     Case 2 (its rows and right-hand side built by the design, not by the module) and compare
-    the spread of the estimates with H⁻¹ Σ Uᵀγ U H⁻¹."""
+    the spread of the estimates with H⁻¹ Σ Uᵀγ U H⁻¹; also with the entries near reversals
+    left out, whose errors then reach no estimate."""
     a, b = noisy_pair
     assert reversal_of(a) is not None  # the S_k factor must be exercised
+    if left_out:
+        a, b = (without_rows(d, near_reversals(d)) for d in (a, b))
+        assert 0 < a.entries(0) < a.rows
     n = a.n
     gains = np.asarray(world.truth.gains, float)
     # Correlated drives and a strong reversal variance: a transposed or missing factor shows.

@@ -24,20 +24,36 @@ KEY = "random-closed-loop"
 def test_the_cell_variant_is_the_study_scenario(capsys: pytest.CaptureFixture[str]) -> None:
     out = study(seeds=2, workers=2, variants=("cell",))
     text = capsys.readouterr().out
-    for row in ("cell: b mean", "cell: c std", "cell: gains mean, j1-j6"):
+    for row in (
+        "cell: b mean",
+        "cell: c std",
+        "cell: left out: b mean",
+        "cell: left out / σ̂ all: c std",
+        "cell: payload ±2σ coverage",
+        "cell: left out: payload ±2σ coverage",
+        "cell: gains mean, j1-j6",
+    ):
         assert row in text
-    assert [(o[0], o[1]) for o in out] == [("cell", 0), ("cell", 1)]
+    assert [(o.variant, o.seed) for o in out] == [("cell", 0), ("cell", 1)]
+    # its own steps give the validation study's seed: the same z of the gains and payloads
     world = make_world()
     scenario = next(s for s in SCENARIOS if s.key == KEY)
     seed = run_seed(world, 1, scenario, tuple(m for m in METHODS if m.key == OURS))
     zb = payload_z([seed], OURS, world.payload.values, "b")[0]
     zb[world.payload.known_mask()] = np.nan
-    np.testing.assert_allclose(out[1][2], zb, rtol=1e-9, equal_nan=True)
-    # payload b's mass is known (it scales the gains): no z; payload c has all ten
-    assert np.isnan(out[1][2][world.payload.known_mask()]).all()
-    assert np.isfinite(out[1][3]).all()
+    np.testing.assert_allclose(out[1].b, zb, rtol=1e-9, equal_nan=True)
+    zc = payload_z([seed], OURS, world.validation.values, "c")[0]
+    np.testing.assert_allclose(out[1].c, zc, rtol=1e-9)
     zg = (seed.gains[OURS] - world.truth.gains) / seed.std[OURS]
-    np.testing.assert_allclose(out[1][4], zg, rtol=1e-9)
+    np.testing.assert_allclose(out[1].gains, zg, rtol=1e-9)
+    # payload b's mass is known (it scales the gains): no z; payload c has all ten
+    for z in (out[1].b, out[1].b_left, out[1].b_left_full):
+        assert np.isnan(z[world.payload.known_mask()]).all()
+    for z in (out[1].c_left, out[1].c_left_full):
+        assert np.isfinite(z).all()
+    # leaving entries out moves the estimate: another z, over another σ̂
+    assert not np.allclose(out[1].c_left, out[1].c)
+    assert not np.allclose(out[1].c_left, out[1].c_left_full)
 
 
 def test_each_variant_removes_what_it_names() -> None:

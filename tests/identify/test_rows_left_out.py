@@ -1,0 +1,126 @@
+"""Entries left out of Case 2 (``Design.row_weight``, ``cases.without_rows``,
+``cases.near_reversals``).
+
+Each product of a design with some entries left out is checked against the same product on
+the kept rows of the unweighted design, built by indexing (not through the weight), and the
+fit against a least squares solved by numpy on those rows.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from drivegain.identify.cases import fit_case, near_reversals, without_rows
+from drivegain.identify.design import ls_transform, make_design
+
+
+def _design(world, run):
+    form = world.robot.wrist_friction
+    return make_design(run, world.bases[form], form, world.robot)
+
+
+@pytest.fixture(scope="module")
+def pair(world, noisy_run):
+    """An unloaded and a loaded run, filtered (they carry reversal shares)."""
+    rng = np.random.default_rng(77)
+    return tuple(
+        _design(world, noisy_run(which, payload, rng, duration=20.0, label=label))
+        for which, payload, label in ((0, None, "unloaded"), (1, world.payload, "loaded"))
+    )
+
+
+def _drop(d, seed: int) -> np.ndarray:
+    """A different random 30 % of the entries of each joint."""
+    return np.random.default_rng(seed).random((d.rows, d.n)) < 0.3
+
+
+def test_unit_weights_change_nothing(pair) -> None:
+    a = pair[1]
+    ones = dataclasses.replace(a, row_weight=np.ones((a.rows, a.n)))
+    np.testing.assert_array_equal(ones.factors(), a.factors())
+    coef = np.random.default_rng(1).standard_normal(a.m)
+    np.testing.assert_array_equal(ones.dot(coef), a.dot(coef))
+    w = np.random.default_rng(2).standard_normal((a.rows, a.n))
+    np.testing.assert_array_equal(ones.tdot(w), a.tdot(w))
+    assert ones.entries(3) == a.rows
+
+
+def test_products_are_those_of_the_kept_rows(pair) -> None:
+    a = pair[1]
+    drop = _drop(a, 3)
+    left = without_rows(a, drop)
+    f = left.factors()
+    for j in range(a.n):
+        kept = a.block(j)[~drop[:, j]]
+        np.testing.assert_allclose(f[j].T @ f[j], kept.T @ kept, rtol=1e-9, atol=1e-9)
+        np.testing.assert_array_equal(left.block(j)[drop[:, j]], 0.0)
+        assert left.entries(j) == int((~drop[:, j]).sum())
+    coef = np.random.default_rng(4).standard_normal(a.m)
+    np.testing.assert_allclose(left.dot(coef), np.where(drop, 0.0, a.dot(coef)), rtol=1e-12)
+    w = np.random.default_rng(5).standard_normal((a.rows, a.n))
+    np.testing.assert_allclose(left.tdot(w), a.tdot(np.where(drop, 0.0, w)), rtol=1e-12)
+    # a subset keeps its rows' weights; leaving out more multiplies
+    sl = slice(10, 60)
+    np.testing.assert_array_equal(left.subset(sl).row_weight, left.row_weight[sl])
+    both = without_rows(left, _drop(a, 6))
+    np.testing.assert_array_equal(both.row_weight, (~drop & ~_drop(a, 6)).astype(float))
+    with pytest.raises(ValueError, match="drop must be"):
+        without_rows(a, drop[:-1])
+
+
+def test_case2_on_the_kept_rows_is_their_least_squares(world, pair) -> None:
+    gains = np.asarray(world.truth.gains, dtype=float)
+    names = list(world.bases[world.robot.wrist_friction].names)
+    drops = [_drop(d, 10 + k) for k, d in enumerate(pair)]
+    left = [without_rows(d, m) for d, m in zip(pair, drops, strict=True)]
+    fit = fit_case("kept", left, gains, names, covariance=False)
+    transforms = [ls_transform(pair[0], None, 1, gains), ls_transform(pair[1], 0, 1, gains)]
+    p = transforms[0].shape[1] - 1
+    # σ_j from joint j's own OLS on its kept rows, dof = kept rows − rank
+    sigma = np.empty(pair[0].n)
+    for j in range(pair[0].n):
+        rows = np.vstack(
+            [d.block(j)[~m[:, j]] @ t for d, m, t in zip(pair, drops, transforms, strict=True)]
+        )
+        x_j, *_ = np.linalg.lstsq(rows[:, :p], rows[:, p], rcond=1e-10)
+        rank = np.linalg.matrix_rank(rows[:, :p])
+        sigma[j] = np.linalg.norm(rows[:, :p] @ x_j - rows[:, p]) / np.sqrt(rows.shape[0] - rank)
+    np.testing.assert_allclose(fit.sigma_joint, sigma, rtol=1e-6)
+    a_rows, y_rows = [], []
+    for d, m, t in zip(pair, drops, transforms, strict=True):
+        for j in range(d.n):
+            kept = d.block(j)[~m[:, j]] @ t / sigma[j]
+            a_rows.append(kept[:, :p])
+            y_rows.append(kept[:, p])
+    x, *_ = np.linalg.lstsq(np.vstack(a_rows), np.concatenate(y_rows), rcond=None)
+    np.testing.assert_allclose(fit.payloads[0].values, x[-10:], rtol=1e-6)
+    assert fit.rows == sum(int((~m).sum()) for m in drops)
+
+
+def test_near_reversals_follows_the_drives_a_joint_carries(pair) -> None:
+    a = pair[0]
+    n = a.n
+    share = np.zeros((a.rows, n))
+    share[50, 0] = 0.5  # drive 1 at sample 50
+    share[80, n - 1] = -0.2  # the last drive (the coupled wrist's) at sample 80, signed
+    share[90, 1] = 0.05  # at the limit: not near
+    d = dataclasses.replace(a, run=dataclasses.replace(a.run, reversal_share=share))
+    near = near_reversals(d, margin=0)
+    coupled = np.flatnonzero(a.kt[:, n - 1] != 0.0)  # the joints whose torque drive n carries
+    assert coupled.size >= 2  # the TX-40's wrist: joints 5 and 6
+    expected = np.zeros((a.rows, n), dtype=bool)
+    expected[50, 0] = True
+    expected[80, coupled] = True
+    np.testing.assert_array_equal(near, expected)
+    wide = near_reversals(d, margin=2)
+    np.testing.assert_array_equal(np.flatnonzero(wide[:, 0]), np.arange(48, 53))
+    assert not near_reversals(d, limit=0.6).any()
+    none = dataclasses.replace(a, run=dataclasses.replace(a.run, reversal_share=None))
+    assert not near_reversals(none).any()
+    with pytest.raises(ValueError, match="limit"):
+        near_reversals(d, limit=1.0)
+    with pytest.raises(ValueError, match="margin"):
+        near_reversals(d, margin=-1)
