@@ -91,10 +91,8 @@ def _one(task: tuple[str, int, bool]) -> SeedZ:
     from drivegain.identify.blas import limited_blas_threads
     from drivegain.identify.cases import fit_case, near_reversals, without_rows
     from drivegain.identify.compare import ours_gains
-    from drivegain.identify.design import make_design
-    from drivegain.validation.estimators import seed_runs, seed_world
-    from drivegain.validation.scenarios import SCENARIOS, scenario_rng
-    from drivegain.validation.world import prepare
+    from drivegain.validation.estimators import seed_designs
+    from drivegain.validation.scenarios import SCENARIOS
 
     variant, seed, noise_free = task
     sc = next(s for s in SCENARIOS if s.key == "random-closed-loop")
@@ -102,10 +100,8 @@ def _one(task: tuple[str, int, bool]) -> SeedZ:
         sc = replace(sc, loop_noise_nm=0.0)
     world = _world(variant)
     with limited_blas_threads(1):
-        # the draws of validation.estimators.run_seed, step by step (the designs are needed)
-        w = seed_world(world, sc, seed)
-        runs = [prepare(w, r) for r in seed_runs(w, sc, scenario_rng(sc, seed))]
-        a, b, c = (make_design(r, w.base, w.form, w.robot) for r in runs)
+        # the designs validation.estimators.run_seed fits (its payload fits are redone here)
+        w, (a, b, c) = seed_designs(world, sc, seed)
         est = ours_gains(a, b, w.payload, w.robot.apriori_gains)
         names = list(w.base.names)
         out: list[np.ndarray] = []

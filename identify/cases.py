@@ -171,12 +171,10 @@ def near_reversals(
     if share is None:
         return out
     marked = np.abs(share) > limit  # (N, drives)
+    window = np.ones(2 * margin + 1)
     for j in range(n):
         rows = marked[:, d.kt[j] != 0.0].any(axis=1)
-        if margin:
-            window = np.ones(2 * margin + 1)
-            rows = np.convolve(rows.astype(float), window, mode="same") > 0.0
-        out[:, j] = rows
+        out[:, j] = np.convolve(rows.astype(float), window, mode="same") > 0.0
     return out
 
 

@@ -333,6 +333,15 @@ def seed_runs(world: World, scenario: Scenario, rng: np.random.Generator) -> lis
     return simulate_three(world, scenario, rng)
 
 
+def seed_designs(world: World, scenario: Scenario, seed: int) -> tuple[World, list[Design]]:
+    """The seed's world and the coupled designs of its runs a, b and c, prepared from the
+    simulation: the data every estimator of :func:`run_seed` works on."""
+    rng = scenario_rng(scenario, seed)
+    world = seed_world(world, scenario, seed)
+    prepared = [prepare(world, r) for r in seed_runs(world, scenario, rng)]
+    return world, [make_design(p, world.base, world.form, world.robot) for p in prepared]
+
+
 def run_seed(
     world: World, seed: int, scenario: Scenario, methods: Sequence[Method] = METHODS
 ) -> SeedResult:
@@ -341,11 +350,8 @@ def run_seed(
     A random-excitation scenario draws the seed's trajectory first (the same for runs a, b
     and c, from its own stream :func:`~drivegain.validation.scenarios.trajectory_rng`).
     """
-    rng = scenario_rng(scenario, seed)
-    world = seed_world(world, scenario, seed)
-    prepared = [prepare(world, r) for r in seed_runs(world, scenario, rng)]
-    bp, form, robot = world.base, world.form, world.robot
-    coupled = [make_design(p, bp, form, robot) for p in prepared]
+    world, coupled = seed_designs(world, scenario, seed)
+    bp, robot = world.base, world.robot
     diagonal = [diagonal_design(d) for d in coupled]
     names = list(bp.names)
     out = SeedResult(seed=seed, scenario=scenario.key)
