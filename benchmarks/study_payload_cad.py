@@ -38,11 +38,10 @@ def study(
     """
     from drivegain.config.payload import PAYLOAD_PARAMS
     from drivegain.identify.blas import limited_blas_threads
-    from drivegain.identify.design import make_design
     from drivegain.identify.gains import Estimator, estimate_gains
-    from drivegain.validation.estimators import seed_runs, seed_world
+    from drivegain.validation.estimators import run_designs, seed_runs, seed_world
     from drivegain.validation.scenarios import SCENARIOS, scenario_rng
-    from drivegain.validation.world import make_world, prepare
+    from drivegain.validation.world import make_world
 
     scenario = next((s for s in SCENARIOS if s.key == scenario_key), None)
     if scenario is None:
@@ -69,9 +68,7 @@ def study(
         for seed in range(seeds):
             world = seed_world(base, scenario, seed)
             runs = seed_runs(world, scenario, scenario_rng(scenario, seed))[:2]
-            a, b = (
-                make_design(prepare(world, r), world.base, world.form, world.robot) for r in runs
-            )
+            a, b = run_designs(world, runs)
             for name, pay in ways.items():
                 res = estimate_gains(a, b, pay, world.robot.apriori_gains, estimator=Estimator.ML)
                 errors[name].append(100.0 * (res.gains / world.truth.gains - 1.0))

@@ -101,11 +101,10 @@ def _identify(scenario_key: str, trajectory: int | None, seeds: list[int]) -> np
     (len(seeds), 3·joints). ``trajectory`` None: each seed on its own excitation."""
     from drivegain.errors import IdentificationError
     from drivegain.identify.blas import limited_blas_threads
-    from drivegain.identify.design import make_design
     from drivegain.identify.ml import ml_fit
-    from drivegain.validation.estimators import seed_runs, seed_world
+    from drivegain.validation.estimators import run_designs, seed_runs, seed_world
     from drivegain.validation.scenarios import scenario_rng
-    from drivegain.validation.world import make_world, prepare
+    from drivegain.validation.world import make_world
 
     scenario = _scenario(scenario_key)
     base = make_world()
@@ -115,9 +114,7 @@ def _identify(scenario_key: str, trajectory: int | None, seeds: list[int]) -> np
         for seed in seeds:
             world = held if held is not None else seed_world(base, scenario, seed)
             runs = seed_runs(world, scenario, scenario_rng(scenario, seed))[:2]  # runs a, b
-            a, b = (
-                make_design(prepare(world, r), world.base, world.form, world.robot) for r in runs
-            )
+            a, b = run_designs(world, runs)
             try:
                 fit = ml_fit(a, b, world.payload)
             except IdentificationError:

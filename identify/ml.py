@@ -36,6 +36,7 @@ was 10-20 % too small).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
@@ -104,6 +105,10 @@ class MLFit:
         Per entry of :attr:`theta`, the factor (≥ 1) its standard deviation was raised by
         because the errors repeat with the excitation's period (:func:`~.hac.with_repeats`);
         None when a run spans too few periods of a known one, or has none.
+    neg_log_lik
+        −2 log L per sample of the fit (its noise model at the estimate, less the constant
+        n·log 2π): the smaller, the better the runs' currents are explained. Comparable between
+        fits of the same runs' entries (:mod:`.signchoice`).
     noise
         Σ̂, the residual covariance in current units, A², (n, n).
     kappa
@@ -154,6 +159,7 @@ class MLFit:
     coulomb: np.ndarray = field(default_factory=lambda: np.zeros(0))
     coulomb_sources: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.intp))
     repeat_scale: np.ndarray | None = None
+    neg_log_lik: float = math.nan
 
     @property
     def theta(self) -> np.ndarray:
@@ -487,6 +493,7 @@ def ml_fit(
         linear=linear,
         influence=None if infl is None else infl.meat(),
         repeat_scale=repeat,
+        neg_log_lik=_neg_log_lik(runs, whiten, gram, samples),
     )
 
 
@@ -522,6 +529,24 @@ def _run_sums(
     if infl is not None:
         infl.end_run()
     return sums, infl, folded
+
+
+def _neg_log_lik(
+    runs: Sequence[RunArrays], whiten: Whitening, gram: np.ndarray, samples: int
+) -> float:
+    """−2 log L per sample of the fitted noise model, less its constant n·log 2π.
+
+    Entry k's errors are N(0, S_k Σ S_k): −2 log L = Σ_k [log det Σ + 2 Σ_i log S_ki +
+    ε_kᵀ Σ⁻¹ ε_k], ε_k = S_k⁻¹ e_k, whose Gram the fit holds (``gram``). Fits of the same
+    currents (the same entries) compare by it whatever their regressor columns.
+    """
+    sigma = np.asarray(whiten.noise, float)
+    logdet = float(np.linalg.slogdet(sigma)[1])
+    quad = float(np.trace(np.linalg.solve(sigma, gram)))
+    scale = sum(
+        float(np.sum(np.log1p(whiten.kappa * r.reversal))) for r in runs if r.reversal is not None
+    )
+    return logdet + (quad + scale) / samples
 
 
 def _reduce(

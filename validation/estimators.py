@@ -33,6 +33,7 @@ from drivegain.identify.design import Design, make_design
 from drivegain.identify.gains import DEFAULT_ALPHA_GRID, Estimator, estimate_gains
 from drivegain.identify.hac import bartlett_lag, long_run_covariance, sandwich
 from drivegain.identify.mlmodel import Whitening, run_pair, scores, whitened_block
+from drivegain.identify.signchoice import at_position_cutoff, choose_sign
 from drivegain.validation.cell import closed_loop_three
 from drivegain.validation.scenarios import (
     SCENARIOS,
@@ -338,8 +339,23 @@ def seed_designs(world: World, scenario: Scenario, seed: int) -> tuple[World, li
     simulation: the data every estimator of :func:`run_seed` works on."""
     rng = scenario_rng(scenario, seed)
     world = seed_world(world, scenario, seed)
-    prepared = [prepare(world, r) for r in seed_runs(world, scenario, rng)]
-    return world, [make_design(p, world.base, world.form, world.robot) for p in prepared]
+    return world, run_designs(world, seed_runs(world, scenario, rng))
+
+
+def run_designs(world: World, runs: Sequence[SimRun]) -> list[Design]:
+    """The coupled designs of simulated runs (a, b, then any others), prepared as ``identify``
+    prepares logs: when the noise rule kept the Coulomb sign above the position cut-off, the
+    runs are prepared with the sign at the position cut-off too and the likelier preparation of
+    runs a and b is kept for all (:func:`~drivegain.identify.signchoice.choose_sign`)."""
+    prepared = [prepare(world, r) for r in runs]
+    designs = [make_design(p, world.base, world.form, world.robot) for p in prepared]
+    other = at_position_cutoff(prepared[0].filter)
+    if other is None or len(designs) < 2:
+        return designs
+    there = replace(world, settings=other)  # prepare() sets each run's current delay
+    alt = [make_design(prepare(there, r), world.base, world.form, world.robot) for r in runs]
+    choice = choose_sign([(designs[0], designs[1]), (alt[0], alt[1])], world.payload)
+    return designs if choice.chosen == 0 else alt
 
 
 def run_seed(
