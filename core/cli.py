@@ -370,8 +370,10 @@ def build_parser() -> argparse.ArgumentParser:
         type=POSITIVE,
         metavar="HZ",
         help="low-pass cut-off of the velocity whose sign the Coulomb friction columns take, "
-        "Hz (default: 8 times the position cut-off, at most 0.4 times the sample rate): the "
-        "position filter blurs the stop of a closed-loop drive at each reversal (docs/model.md)",
+        "Hz (default: 8 times the position cut-off, at most 0.4 times the sample rate, lower "
+        "where the encoder is coarse, or the position cut-off where that explains runs a and "
+        "b's currents better): the position filter blurs the stop of a closed-loop drive at "
+        "each reversal (docs/model.md)",
     )
     p.add_argument("--decimate", type=DECIMATE, help="decimation factor")
     p.add_argument(

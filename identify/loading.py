@@ -40,6 +40,7 @@ from drivegain.identify.prepare import PreparedRun, prepare_recording
 from drivegain.identify.report import RunInfo
 from drivegain.identify.runs import LoadedRun, load_run
 from drivegain.identify.signal import FilterSettings, default_filter
+from drivegain.identify.signchoice import at_position_cutoff
 
 if TYPE_CHECKING:
     from rich.progress import Progress
@@ -156,7 +157,7 @@ def _load_one(
 def _filter_for(run: LoadedRun, req: IdentifyRequest) -> FilterSettings:
     bandwidth = trajectory_bandwidth(run.attachments)
     try:
-        return default_filter(
+        settings = default_filter(
             run.rate_hz,
             bandwidth,
             cutoff_hz=req.cutoff,
@@ -166,6 +167,10 @@ def _filter_for(run: LoadedRun, req: IdentifyRequest) -> FilterSettings:
         )
     except InputError as exc:
         raise InputError(f"run {run.label} ({run.path}): {exc}") from None
+    if req.sign_at_cutoff:
+        # the second candidate of the sign's choice (signchoice): the sign at the position's
+        return at_position_cutoff(settings) or settings
+    return settings
 
 
 def _run_info(run: LoadedRun, prepared: PreparedRun, asked: FilterSettings) -> RunInfo:

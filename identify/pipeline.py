@@ -18,20 +18,22 @@ import sys
 import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 from drivegain.config.payload import Payload, load_payload
 from drivegain.config.robot import Robot, WristFriction, load_robot
-from drivegain.dynamics.model import build_model
+from drivegain.dynamics.base import BaseParameters
+from drivegain.dynamics.model import RobotModel, build_model
 from drivegain.errors import IdentificationError, InputError
 from drivegain.identify import consistent_report as cr
 from drivegain.identify.blas import limited_blas_threads
 from drivegain.identify.bootstrap import MIN_REPLICATES
+from drivegain.identify.design import make_design
 from drivegain.identify.diagnose import current_warnings, other_channel_hint
 from drivegain.identify.gains import Estimator
-from drivegain.identify.loading import load_and_prepare
+from drivegain.identify.loading import Loaded, load_and_prepare
 from drivegain.identify.procedure import (
     GivenGains,
     Options,
@@ -47,6 +49,7 @@ from drivegain.identify.runs import (
     load_gains,
     read_header,
 )
+from drivegain.identify.signchoice import at_position_cutoff, choose_sign
 
 # --------------------------------------------------------------------------------------------
 # Inputs
@@ -82,6 +85,9 @@ class IdentifyRequest:
     current: str = "reference"  # --current: reference or measured
     current_delay: float = 0.0  # --current-delay: age of the current samples, samples
     bootstrap: int = 0  # --bootstrap: replicates of the ML fit's block bootstrap (0: none)
+    # Set by the pipeline, not an option: prepare with the Coulomb sign at the position cut-off
+    # (the second candidate of identify.signchoice).
+    sign_at_cutoff: bool = False
 
 
 #: what the report says when ``--no-plots`` skipped the figures
@@ -301,6 +307,38 @@ def run_identify(req: IdentifyRequest) -> IdentifyOutcome:
             plots.stop_worker()
 
 
+def _choose_sign(
+    model: RobotModel,
+    specs: list[tuple[Path, str, Payload | None]],
+    req: IdentifyRequest,
+    progress: Any,
+    robot: Robot,
+    form: WristFriction,
+    bp: BaseParameters | None,
+    loaded: list[Loaded],
+) -> list[Loaded]:
+    """``loaded``, or the runs prepared again with the Coulomb sign at the position cut-off
+    when that explains runs a and b's currents better (:mod:`.signchoice`); the report's runs
+    say which, and by how much. ``bp``: the friction form's base parameters (None: the
+    procedure reports the form missing)."""
+    if bp is None or not any(at_position_cutoff(x.prepared.filter) is not None for x in loaded):
+        return loaded
+    _, other = load_and_prepare(model, specs, replace(req, sign_at_cutoff=True), progress)
+    payload = loaded[1].prepared.payload
+    if payload is None:  # the procedure names a loaded run without payload
+        return loaded
+    pairs = [
+        (make_design(x[0].prepared, bp, form, robot), make_design(x[1].prepared, bp, form, robot))
+        for x in (loaded, other)
+    ]
+    task = progress.add_task("Coulomb sign: which velocity", total=None)
+    choice = choose_sign(pairs, payload)
+    progress.remove_task(task)
+    kept = loaded if choice.chosen == 0 else other
+    note = choice.note()
+    return [replace(x, info=replace(x.info, notes=[*x.info.notes, note])) for x in kept]
+
+
 def _run_identify(req: IdentifyRequest) -> IdentifyOutcome:
     _check_request(req)
     robot = load_robot(req.robot, acquisition=False)  # encoder counts etc. not needed here
@@ -324,6 +362,10 @@ def _run_identify(req: IdentifyRequest) -> IdentifyOutcome:
         if req.validate is not None:
             specs.append((req.validate, "validation", vpayload))
         bases, loaded = load_and_prepare(model, specs, req, display.progress)
+        if req.loaded is not None and given is None:
+            loaded = _choose_sign(
+                model, specs, req, display.progress, robot, form, bases.get(form), loaded
+            )
         prepared = [x.prepared for x in loaded]
         infos = [x.info for x in loaded]
         metas = [x.meta for x in loaded]

@@ -68,6 +68,8 @@ class SignChoice:
 def _per_sample(nll: float, best: float) -> str:
     if not math.isfinite(nll):
         return "its fit failed"
+    if nll == best:  # the same signs after all: a tie keeps the first (the rule's)
+        return "the same likelihood"
     return f"−2 log L larger by {nll - best:.3g} per sample"
 
 

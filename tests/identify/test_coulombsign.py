@@ -160,3 +160,36 @@ def test_the_report_says_when_the_sign_cutoff_came_down(run_logs, tmp_path) -> N
         assert f["sign_noise_limit"] == SIGN_QUANTUM_NOISE
         assert f["cutoff_hz"] <= f["sign_cutoff_hz"] < 8 * f["cutoff_hz"]
         assert any(n.startswith("Coulomb sign's velocity filtered at") for n in run["notes"])
+
+
+def test_the_report_says_which_sign_the_runs_likelihood_chose(run_logs, tmp_path) -> None:
+    """End to end through ``drivegain identify``: where the rule keeps the sign above the
+    position cut-off (a 1e-3° encoder), the runs are prepared with the sign at the position
+    cut-off too and the likelier preparation is kept (identify.signchoice); each run's note names
+    the cut-off kept, the one its filter records. A cut-off given by hand: no rule, no choice."""
+    logs = run_logs(tmp_path, {"a": 5, "b": 6}, seconds=12.0)
+    out = tmp_path / "report"
+    argv = ["identify", "--robot", str(resource_path("tx40.toml")), "--unloaded", str(logs["a"])]
+    argv += ["--loaded", str(logs["b"])]
+    argv += ["--payload", str(resource_path("payloads/calibrated-4590g.toml")), "--no-plots"]
+    assert main([*argv, "--out", str(out)]) == 0
+    runs = json.loads((out / "report.json").read_text())["runs"]
+    kept = set()
+    for run in runs:
+        f = run["filter"]
+        chosen = [n for n in run["notes"] if "chosen by the runs' likelihood" in n]
+        assert len(chosen) == 1, run["notes"]
+        assert chosen[0].startswith(
+            f"Coulomb sign's velocity filtered at {f['sign_cutoff_hz']:g} Hz"
+        )
+        assert "(−2 log L larger by" in chosen[0] or "(the same likelihood)" in chosen[0]
+        other = f["cutoff_hz"] if f["sign_cutoff_hz"] > f["cutoff_hz"] else 8 * f["cutoff_hz"]
+        assert f" over {other:g} Hz " in chosen[0]
+        kept.add(f["sign_cutoff_hz"])
+    assert len(kept) == 1  # one preparation for all runs
+    given = tmp_path / "given"
+    assert main([*argv, "--out", str(given), "--sign-cutoff", "12"]) == 0
+    for run in json.loads((given / "report.json").read_text())["runs"]:
+        assert run["filter"]["sign_cutoff_hz"] == 12.0
+        assert run["filter"]["sign_noise_limit"] is None
+        assert not any("Coulomb sign" in n for n in run["notes"])
