@@ -320,13 +320,15 @@ def _choose_sign(
     """``loaded``, or the runs prepared again with the Coulomb sign at the position cut-off
     when that explains runs a and b's currents better (:mod:`.signchoice`); the report's runs
     say which, and by how much. ``bp``: the friction form's base parameters (None: the
-    procedure reports the form missing)."""
-    if bp is None or not any(at_position_cutoff(x.prepared.filter) is not None for x in loaded):
-        return loaded
-    _, other = load_and_prepare(model, specs, replace(req, sign_at_cutoff=True), progress)
+    procedure reports the form missing). Both preparations are held until the choice: peak
+    memory about twice one's."""
     payload = loaded[1].prepared.payload
-    if payload is None:  # the procedure names a loaded run without payload
+    if bp is None or payload is None:  # the procedure reports either
         return loaded
+    if not any(at_position_cutoff(x.prepared.filter) is not None for x in loaded):
+        return loaded
+    # Every run again, not only a and b: the stored columns depend on all runs' payloads.
+    _, other = load_and_prepare(model, specs, replace(req, sign_at_cutoff=True), progress)
     pairs = [
         (make_design(x[0].prepared, bp, form, robot), make_design(x[1].prepared, bp, form, robot))
         for x in (loaded, other)
