@@ -56,6 +56,7 @@ from drivegain.identify.mlmodel import (
     RunArrays,
     Whitening,
     chunks,
+    neg_log_lik,
     predict,
     run_pair,
     scores,
@@ -493,7 +494,7 @@ def ml_fit(
         linear=linear,
         influence=None if infl is None else infl.meat(),
         repeat_scale=repeat,
-        neg_log_lik=_neg_log_lik(runs, whiten, gram, samples),
+        neg_log_lik=neg_log_lik(runs, whiten, gram, samples),
     )
 
 
@@ -529,24 +530,6 @@ def _run_sums(
     if infl is not None:
         infl.end_run()
     return sums, infl, folded
-
-
-def _neg_log_lik(
-    runs: Sequence[RunArrays], whiten: Whitening, gram: np.ndarray, samples: int
-) -> float:
-    """−2 log L per sample of the fitted noise model, less its constant n·log 2π.
-
-    Entry k's errors are N(0, S_k Σ S_k): −2 log L = Σ_k [log det Σ + 2 Σ_i log S_ki +
-    ε_kᵀ Σ⁻¹ ε_k], ε_k = S_k⁻¹ e_k, whose Gram the fit holds (``gram``). Fits of the same
-    currents (the same entries) compare by it whatever their regressor columns.
-    """
-    sigma = np.asarray(whiten.noise, float)
-    logdet = float(np.linalg.slogdet(sigma)[1])
-    quad = float(np.trace(np.linalg.solve(sigma, gram)))
-    scale = sum(
-        float(np.sum(np.log1p(whiten.kappa * r.reversal))) for r in runs if r.reversal is not None
-    )
-    return logdet + (quad + scale) / samples
 
 
 def _reduce(

@@ -12,6 +12,7 @@ the gathered regressor columns and the Jacobian exist for one block at a time.
 from __future__ import annotations
 
 import functools
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -282,3 +283,32 @@ def whitened_block(
 def scores(jw: np.ndarray, ew: np.ndarray) -> np.ndarray:
     """Per-sample scores ψ_k = J̃_kᵀ ẽ_k, (N, P): θ̂ − θ ≈ H⁻¹ Σ_k ψ_k to first order."""
     return np.asarray(np.matmul(ew[:, None, :], jw)[:, 0, :])
+
+
+def neg_log_lik(
+    runs: Sequence[RunArrays], whiten: Whitening, gram: np.ndarray, samples: int
+) -> float:
+    """−2 log L per sample of a fitted noise model, less its constant n·log 2π.
+
+    Entry k's errors are N(0, S_k Σ S_k): −2 log L = Σ_k [log det Σ + 2 Σ_i log S_ki +
+    ε_kᵀ Σ⁻¹ ε_k], ε_k = S_k⁻¹ e_k, whose Gram the fit holds (``gram``). Fits of the same
+    currents (the same entries) compare by it whatever their regressor columns.
+
+    Parameters
+    ----------
+    runs
+        The runs fitted (their reversal shares).
+    whiten
+        Σ̂ (A²) and κ̂ of the fit.
+    gram
+        Σ_k ε_k ε_kᵀ of the fit's residuals scaled by S_k⁻¹, A², (n, n).
+    samples
+        Entries in the sums (samples of all runs).
+    """
+    sigma = np.asarray(whiten.noise, float)
+    logdet = float(np.linalg.slogdet(sigma)[1])
+    quad = float(np.trace(np.linalg.solve(sigma, gram)))
+    scale = sum(
+        float(np.sum(np.log1p(whiten.kappa * r.reversal))) for r in runs if r.reversal is not None
+    )
+    return logdet + (quad + scale) / samples
