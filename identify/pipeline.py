@@ -28,6 +28,7 @@ from drivegain.dynamics.base import BaseParameters
 from drivegain.dynamics.model import RobotModel, build_model
 from drivegain.errors import IdentificationError, InputError
 from drivegain.identify import consistent_report as cr
+from drivegain.identify import forked
 from drivegain.identify.blas import limited_blas_threads
 from drivegain.identify.bootstrap import MIN_REPLICATES
 from drivegain.identify.design import make_design
@@ -334,7 +335,8 @@ def _choose_sign(
         for x in (loaded, other)
     ]
     task = progress.add_task("Coulomb sign: which velocity", total=None)
-    choice = choose_sign(pairs, payload)
+    long = sum(d.rows * d.n for d in pairs[0]) >= forked.PARALLEL_EQUATIONS
+    choice = choose_sign(pairs, payload, parallel=long)  # forked checks it can fork
     progress.remove_task(task)
     kept = loaded if choice.chosen == 0 else other
     note = choice.note()

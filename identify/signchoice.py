@@ -90,7 +90,9 @@ def at_position_cutoff(settings: FilterSettings | None) -> FilterSettings | None
     return replace(settings, sign_cutoff_hz=settings.cutoff_hz, sign_noise_limit=None)
 
 
-def choose_sign(candidates: Sequence[tuple[Design, Design]], payload: Payload) -> SignChoice:
+def choose_sign(
+    candidates: Sequence[tuple[Design, Design]], payload: Payload, *, parallel: bool = False
+) -> SignChoice:
     """The candidate preparation of runs a and b whose maximum-likelihood fit is the likeliest.
 
     Parameters
@@ -100,6 +102,9 @@ def choose_sign(candidates: Sequence[tuple[Design, Design]], payload: Payload) -
         the same entries in each (checked).
     payload
         Run b's payload.
+    parallel
+        The runs are long enough for each fit to use a forked child
+        (:func:`~drivegain.identify.ml.ml_fit`; the same result either way).
 
     Returns
     -------
@@ -123,7 +128,7 @@ def choose_sign(candidates: Sequence[tuple[Design, Design]], payload: Payload) -
     values = []
     for a, b in candidates:
         try:
-            values.append(ml_fit(a, b, payload).neg_log_lik)
+            values.append(ml_fit(a, b, payload, parallel=parallel).neg_log_lik)
         except IdentificationError:
             # a preparation the fit cannot use is not the likelier one
             values.append(math.nan)
