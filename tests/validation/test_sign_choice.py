@@ -124,10 +124,10 @@ def test_a_candidate_whose_fit_fails_is_not_chosen(dwelling, monkeypatch) -> Non
 
     real = sc.ml_fit
 
-    def failing_on_the_first(a, b, payload):
+    def failing_on_the_first(a, b, payload, **kw):
         if a is rule[0]:
             raise IdentificationError("no")
-        return real(a, b, payload)
+        return real(a, b, payload, **kw)
 
     monkeypatch.setattr(sc, "ml_fit", failing_on_the_first)
     choice = choose_sign([(rule[0], rule[1]), (pos[0], pos[1])], world.payload)
