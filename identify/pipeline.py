@@ -28,7 +28,6 @@ from drivegain.dynamics.base import BaseParameters
 from drivegain.dynamics.model import RobotModel, build_model
 from drivegain.errors import IdentificationError, InputError
 from drivegain.identify import consistent_report as cr
-from drivegain.identify import forked
 from drivegain.identify.blas import limited_blas_threads
 from drivegain.identify.bootstrap import MIN_REPLICATES
 from drivegain.identify.design import make_design
@@ -40,6 +39,7 @@ from drivegain.identify.procedure import (
     Options,
     Problem,
     ProcedureResult,
+    long_runs,
     run_procedure,
 )
 from drivegain.identify.report import FORM_MARGIN, markdown_report, report_json
@@ -50,7 +50,7 @@ from drivegain.identify.runs import (
     load_gains,
     read_header,
 )
-from drivegain.identify.signchoice import at_position_cutoff, choose_sign
+from drivegain.identify.signchoice import choose_sign, has_choice
 
 # --------------------------------------------------------------------------------------------
 # Inputs
@@ -326,7 +326,7 @@ def _choose_sign(
     payload = loaded[1].prepared.payload
     if bp is None or payload is None:  # the procedure reports either
         return loaded
-    if not any(at_position_cutoff(x.prepared.filter) is not None for x in loaded):
+    if not has_choice(x.prepared.filter for x in loaded):
         return loaded
     # Every run again, not only a and b: the stored columns depend on all runs' payloads.
     _, other = load_and_prepare(model, specs, replace(req, sign_at_cutoff=True), progress)
@@ -335,8 +335,7 @@ def _choose_sign(
         for x in (loaded, other)
     ]
     task = progress.add_task("Coulomb sign: which velocity", total=None)
-    long = sum(d.rows * d.n for d in pairs[0]) >= forked.PARALLEL_EQUATIONS
-    choice = choose_sign(pairs, payload, parallel=long)  # forked checks it can fork
+    choice = choose_sign(pairs, payload, parallel=long_runs(list(pairs[0])))
     progress.remove_task(task)
     kept = loaded if choice.chosen == 0 else other
     note = choice.note()

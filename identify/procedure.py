@@ -31,6 +31,7 @@ stacks of those small factors with row weights and column transforms
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -271,7 +272,7 @@ def _run_procedure(problem: Problem, options: Options, step: Step) -> ProcedureR
     apriori = robot.apriori_gains
     warnings: list[str] = []
     main = [a] if b is None else [a, b]
-    factors, train_factors = split_factors(main, options.cv_fraction, parallel=_long(main))
+    factors, train_factors = split_factors(main, options.cv_fraction, parallel=long_runs(main))
 
     wtls = None
     if options.gains is not None:
@@ -285,7 +286,7 @@ def _run_procedure(problem: Problem, options: Options, step: Step) -> ProcedureR
         pending1 = forked.start(
             "Case 1 fit",
             lambda: fit_case("case1", main, apriori, names, factors),
-            parallel=b is not None and _long(main),
+            parallel=b is not None and long_runs(main),
         )
         if b is not None:
             # Invariant, checked above: a loaded run always has its payload.
@@ -300,7 +301,7 @@ def _run_procedure(problem: Problem, options: Options, step: Step) -> ProcedureR
                     alpha=options.alpha,
                     alpha_grid=options.alpha_grid,
                     step=step,
-                    parallel=_long(main),
+                    parallel=long_runs(main),
                     bootstrap=options.bootstrap,
                 )
             except BaseException:
@@ -329,7 +330,7 @@ def _run_procedure(problem: Problem, options: Options, step: Step) -> ProcedureR
             )
             for f in other_forms
         },
-        parallel=bool(other_forms) and _long(main),
+        parallel=bool(other_forms) and long_runs(main),
     )
     try:
         case2 = None
@@ -379,7 +380,8 @@ def _run_procedure(problem: Problem, options: Options, step: Step) -> ProcedureR
     )
 
 
-def _long(main: list[Design]) -> bool:
+def long_runs(main: Sequence[Design]) -> bool:
+    """The runs hold enough equations for their fits to use forked children (:mod:`.forked`)."""
     return sum(d.rows * d.n for d in main) >= forked.PARALLEL_EQUATIONS
 
 

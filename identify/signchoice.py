@@ -20,7 +20,7 @@ Plain functions.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -88,6 +88,12 @@ def at_position_cutoff(settings: FilterSettings | None) -> FilterSettings | None
     if settings.sign_cutoff <= settings.cutoff_hz:
         return None
     return replace(settings, sign_cutoff_hz=settings.cutoff_hz, sign_noise_limit=None)
+
+
+def has_choice(filters: Iterable[FilterSettings | None]) -> bool:
+    """Whether runs prepared with ``filters`` have a second candidate: some run's noise rule
+    kept the sign above the position cut-off (:func:`at_position_cutoff`)."""
+    return any(at_position_cutoff(f) is not None for f in filters)
 
 
 def choose_sign(

@@ -33,7 +33,7 @@ from drivegain.identify.design import Design, make_design
 from drivegain.identify.gains import DEFAULT_ALPHA_GRID, Estimator, estimate_gains
 from drivegain.identify.hac import bartlett_lag, long_run_covariance, sandwich
 from drivegain.identify.mlmodel import Whitening, run_pair, scores, whitened_block
-from drivegain.identify.signchoice import at_position_cutoff, choose_sign
+from drivegain.identify.signchoice import at_position_cutoff, choose_sign, has_choice
 from drivegain.validation.cell import closed_loop_three
 from drivegain.validation.scenarios import (
     SCENARIOS,
@@ -349,9 +349,10 @@ def run_designs(world: World, runs: Sequence[SimRun]) -> list[Design]:
     runs a and b is kept for all (:func:`~drivegain.identify.signchoice.choose_sign`)."""
     prepared = [prepare(world, r) for r in runs]
     designs = [make_design(p, world.base, world.form, world.robot) for p in prepared]
-    other = at_position_cutoff(prepared[0].filter)
-    if other is None or len(designs) < 2:
+    if len(designs) < 2 or not has_choice(p.filter for p in prepared):
         return designs
+    # the world's own settings, as identify's second reading asks its request's again
+    other = at_position_cutoff(world.settings) or world.settings
     there = replace(world, settings=other)  # prepare() sets each run's current delay
     alt = [make_design(prepare(there, r), world.base, world.form, world.robot) for r in runs]
     choice = choose_sign([(designs[0], designs[1]), (alt[0], alt[1])], world.payload)
