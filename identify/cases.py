@@ -53,6 +53,10 @@ class CaseCovariance(StrEnum):
         "the maximum-likelihood gains' error model (its whitened errors' autocovariance), "
         "with the gains' covariance and their correlation with this fit"
     )
+    NEWEY_WEST_STICK = (
+        "HAC (Newey-West, Bartlett kernel) with the gains' covariance, on the entries away "
+        "from the reversals of drives that stick"
+    )
 
 
 @dataclass(frozen=True)
@@ -81,7 +85,7 @@ class CaseResult:
     r2, joint_relative
         Per joint: R² of measured against computed torque, and ‖ρ_j‖/‖Y_j‖.
     rows
-        Equations r.
+        Equations r the fit used (every entry less ``left_out``).
     wls
         The weighted solution with its statistics (eq. 8-11, white noise assumed).
     lag
@@ -89,6 +93,9 @@ class CaseResult:
         longest lag of its autocovariance, samples.
     covariance
         How the standard deviations were computed.
+    left_out
+        Entries (sample and joint) the fit left out near reversals of drives that stick
+        (:func:`sticking_drives`); the error norms and R² still count every entry.
     """
 
     name: str
@@ -107,6 +114,7 @@ class CaseResult:
     wls: LSResult
     lag: int = 0
     covariance: CaseCovariance = CaseCovariance.NEWEY_WEST
+    left_out: int = 0
 
     def coefficients(self) -> tuple[np.ndarray, list[np.ndarray]]:
         return self.base, [p.values for p in self.payloads]
@@ -133,14 +141,35 @@ REVERSAL_SHARE_LIMIT = 0.05
 REVERSAL_MARGIN = 2
 
 
+#: A drive sticks at its reversals when the maximum-likelihood gains' κ̂ (the variance its
+#: entries near reversals add, per unit share of reversal, relative to its noise) is at least
+#: this: measured 0-0.13 per drive on exact tracking, 1.7-10 on the simulated cell's
+#: closed-loop drives (docs/model.md, "Case 2 where drives stick").
+STICK_KAPPA = 1.0
+
+
+def sticking_drives(noise: CaseNoise) -> np.ndarray:
+    """Which drives stick at their reversals by the gains' error model: κ̂ ≥ :data:`STICK_KAPPA`.
+
+    Returns
+    -------
+    numpy.ndarray
+        (n,) bool, per drive.
+    """
+    return np.asarray(noise.whitening.kappa, dtype=float) >= STICK_KAPPA
+
+
 def near_reversals(
-    d: Design, limit: float = REVERSAL_SHARE_LIMIT, margin: int = REVERSAL_MARGIN
+    d: Design,
+    limit: float = REVERSAL_SHARE_LIMIT,
+    margin: int = REVERSAL_MARGIN,
+    drives: np.ndarray | None = None,
 ) -> np.ndarray:
     """Which entries of each joint's equations lie near a reversal of a drive they carry.
 
     Joint j's torque is carried by the drives its row of the coupled current matrix reaches
-    (``kt[j] != 0``); its entry k is near a reversal when one of those drives has more than
-    ``limit`` of its filter window near one at a sample within ``margin`` of k.
+    (``kt[j] != 0``); its entry k is near a reversal when one of those drives (of ``drives``)
+    has more than ``limit`` of its filter window near one at a sample within ``margin`` of k.
 
     Parameters
     ----------
@@ -150,6 +179,8 @@ def near_reversals(
         Share of the window (0-1).
     margin
         Samples either side (≥ 0).
+    drives
+        (n,) bool: the drives whose reversals count (None: all).
 
     Returns
     -------
@@ -171,6 +202,11 @@ def near_reversals(
     if share is None:
         return out
     marked = np.abs(share) > limit  # (N, drives)
+    if drives is not None:
+        drives = np.asarray(drives, dtype=bool)
+        if drives.shape != (marked.shape[1],):
+            raise ValueError(f"drives must be ({marked.shape[1]},) bool, got {drives.shape}")
+        marked &= drives[None, :]
     window = np.ones(2 * margin + 1)
     for j in range(n):
         rows = marked[:, d.kt[j] != 0.0].any(axis=1)
@@ -198,11 +234,18 @@ def fit_case(
     gain_cov: np.ndarray | None = None,
     covariance: bool = True,
     noise: CaseNoise | None = None,
+    leave_out_sticks: bool = True,
 ) -> CaseResult:
     """IDIM-WLS of the base parameters and every loaded run's 10 payload parameters.
 
     Rows of joint j are weighted by 1/σ_j from an OLS of joint j's equations alone
     (Gautier 1997); standard deviations by :func:`case_covariance`.
+
+    Where the gains' error model says drives stick at their reversals (:func:`sticking_drives`),
+    the entries near those reversals (:func:`near_reversals`) are left out of the fit and its
+    standard deviations, which are then Newey-West's with the gains' covariance: the stuck
+    drive's torque is a misfit, not noise, and it borrows the payload's inertias to explain it
+    (docs/model.md, "Case 2 where drives stick"). The error norms and R² count every entry.
 
     Parameters
     ----------
@@ -226,10 +269,23 @@ def fit_case(
         The error model of the estimator that gave ``gains`` (:mod:`.casenoise`), for
         standard deviations under it, with the gains' correlation with this fit's noise;
         None: Newey-West, the gains taken as independent.
+    leave_out_sticks
+        False fits every entry whatever the error model says.
     """
     gains = np.asarray(gains, dtype=float)
     if factors is None:
         factors = [d.factors() for d in designs]
+    every, every_factors = list(designs), list(factors)
+    left_out = 0
+    if noise is not None and leave_out_sticks:
+        drives = sticking_drives(noise)
+        if drives.any():
+            drops = [near_reversals(d, drives=drives) for d in designs]
+            left_out = int(sum(int(x.sum()) for x in drops))
+        if left_out:
+            designs = [without_rows(d, x) for d, x in zip(designs, drops, strict=True)]
+            factors = [d.factors() for d in designs]
+            noise = None
     slots = _payload_slots(designs)
     n_slots = sum(s is not None for s in slots)
     transforms = [ls_transform(d, s, n_slots, gains) for d, s in zip(designs, slots, strict=True)]
@@ -242,8 +298,8 @@ def fit_case(
     r = stacked_factor(factors, transforms, 1.0 / sigma)
     res = ls_from_factor(r, rows, names)
     x_aug = np.append(res.x, -1.0)
-    res_sq = joint_residual_sq(factors, transforms, x_aug)
-    y_sq = joint_residual_sq(factors, transforms, np.append(np.zeros(res.x.size), 1.0))
+    res_sq = joint_residual_sq(every_factors, transforms, x_aug)
+    y_sq = joint_residual_sq(every_factors, transforms, np.append(np.zeros(res.x.size), 1.0))
     nb = designs[0].nb
     if covariance:
         cov, lag = case_covariance(
@@ -267,10 +323,13 @@ def fit_case(
                 known=d.run.payload.known,
             )
         )
-    r2, joint_rel = _joint_quality(designs, gains, chi, [p.values for p in payloads])
+    r2, joint_rel = _joint_quality(every, gains, chi, [p.values for p in payloads])
     rho = float(np.sqrt(res_sq.sum()))
+    every_rows = sum(d.entries(j) for d in every for j in range(every[0].n))
     how = CaseCovariance.NEWEY_WEST
-    if noise is not None:
+    if left_out:
+        how = CaseCovariance.NEWEY_WEST_STICK
+    elif noise is not None:
         how = CaseCovariance.ERROR_MODEL
     elif gain_cov is not None:
         how = CaseCovariance.NEWEY_WEST_GAINS
@@ -283,7 +342,7 @@ def fit_case(
         payloads=payloads,
         residual_norm=rho,
         relative_error=rho / float(np.sqrt(y_sq.sum())),
-        sigma_rho=rho / np.sqrt(max(rows - res.x.size, 1)),
+        sigma_rho=rho / np.sqrt(max(every_rows - res.x.size, 1)),
         sigma_joint=sigma,
         r2=r2,
         joint_relative=joint_rel,
@@ -291,6 +350,7 @@ def fit_case(
         wls=res,
         lag=lag,
         covariance=how,
+        left_out=left_out,
     )
 
 

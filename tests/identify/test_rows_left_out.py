@@ -13,8 +13,17 @@ import dataclasses
 import numpy as np
 import pytest
 
-from drivegain.identify.cases import fit_case, near_reversals, without_rows
+from drivegain.identify.cases import (
+    STICK_KAPPA,
+    CaseCovariance,
+    fit_case,
+    near_reversals,
+    predictions,
+    without_rows,
+)
 from drivegain.identify.design import ls_transform, make_design
+from drivegain.identify.gains import Estimator, estimate_gains
+from drivegain.identify.mlmodel import Whitening
 
 
 def _design(world, run):
@@ -124,3 +133,55 @@ def test_near_reversals_follows_the_drives_a_joint_carries(pair) -> None:
         near_reversals(d, limit=1.0)
     with pytest.raises(ValueError, match="margin"):
         near_reversals(d, margin=-1)
+    # only the drives asked for: without drive 1, sample 50 is not near
+    drives = np.ones(n, dtype=bool)
+    drives[0] = False
+    expected[50, 0] = False
+    np.testing.assert_array_equal(near_reversals(d, margin=0, drives=drives), expected)
+    with pytest.raises(ValueError, match="drives must be"):
+        near_reversals(d, drives=drives[:-1])
+
+
+def test_case2_leaves_out_the_reversals_of_drives_that_stick(world, pair) -> None:
+    """The gate on the gains' κ̂: below it Case 2 is the error model's on every entry; at it
+    the entries near the sticking drives' reversals are left out and σ is Newey-West's."""
+    a, b = pair
+    res = estimate_gains(a, b, world.payload, world.robot.apriori_gains, estimator=Estimator.ML)
+    g = slice(res.ml.nb, res.ml.nb + a.n)
+    cov = res.covariance[g, g]
+    names = list(world.bases[world.robot.wrist_friction].names)
+
+    def with_kappa(kappa: np.ndarray):
+        w = res.noise.whitening
+        return dataclasses.replace(res.noise, whitening=Whitening(w.noise, kappa))
+
+    def case2(noise, **kw):
+        return fit_case("case2", [a, b], res.gains, names, gain_cov=cov, noise=noise, **kw)
+
+    quiet = with_kappa(np.full(a.n, 0.99 * STICK_KAPPA))
+    kept = case2(quiet)
+    every = case2(quiet, leave_out_sticks=False)
+    assert (kept.left_out, kept.covariance) == (0, CaseCovariance.ERROR_MODEL)
+    np.testing.assert_array_equal(kept.payloads[0].std, every.payloads[0].std)
+
+    kappa = np.zeros(a.n)
+    kappa[[0, a.n - 1]] = STICK_KAPPA  # drive 1 and the coupled wrist's
+    drives = kappa >= STICK_KAPPA
+    drops = [near_reversals(d, drives=drives) for d in (a, b)]
+    assert 0 < sum(int(x.sum()) for x in drops) < sum(x.size for x in drops)
+    fit = case2(with_kappa(kappa))
+    assert fit.covariance == CaseCovariance.NEWEY_WEST_STICK
+    assert fit.left_out == sum(int(x.sum()) for x in drops)
+    # the fit and σ of the kept entries, Newey-West with the gains taken as independent
+    left = [without_rows(d, x) for d, x in zip((a, b), drops, strict=True)]
+    ref = fit_case("case2", left, res.gains, names, gain_cov=cov)
+    np.testing.assert_allclose(fit.payloads[0].values, ref.payloads[0].values, rtol=1e-12)
+    np.testing.assert_allclose(fit.payloads[0].std, ref.payloads[0].std, rtol=1e-12)
+    assert fit.rows == ref.rows < every.rows
+    # the error norms count every entry, computed here from the torques themselves
+    measured, computed = zip(
+        *predictions([a, b], res.gains, fit.base, [fit.payloads[0].values]), strict=True
+    )
+    rho = np.linalg.norm(np.concatenate(measured) - np.concatenate(computed))
+    np.testing.assert_allclose(fit.residual_norm, rho, rtol=1e-9)
+    assert fit.residual_norm != ref.residual_norm
