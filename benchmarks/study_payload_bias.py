@@ -24,8 +24,12 @@ Printed per variant, for each payload parameter: the mean and the standard devia
 the seeds, the pooled ±2σ coverage, and the gains' mean z. A cause shows as a mean of z that
 goes to about zero when it is removed (its standard error is 1/√seeds).
 
+Case 2 as ``drivegain identify`` now makes it (the entries near the reversals of the drives
+whose κ̂ marks them misfit left out by itself, ``cases.misfit_drives``) is printed too, with the
+gains' κ̂ per drive.
+
 Usage: python benchmarks/study_payload_bias.py [--seeds 20] [--workers 2] [--noise-free]
-       [--variants cell,no-coulomb,fine-encoder]
+       [--variants cell,no-coulomb,fine-encoder] [--scenario random-closed-loop|closed-loop]
 """
 
 from __future__ import annotations
@@ -40,6 +44,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 VARIANTS = ("cell", "no-coulomb", "fine-encoder")
+#: The scenarios whose drives run in closed loop (the only ones where drives stick).
+SCENARIO_KEYS = ("random-closed-loop", "closed-loop")
 #: Counts per turn of the ``fine-encoder`` variant, relative to the robot file's.
 FINE_ENCODER = 100
 
@@ -69,10 +75,13 @@ def _world(variant: str):
 class SeedZ:
     """z = (estimate − truth)/σ̂ of one seed on one variant.
 
-    ``b``, ``c``: payloads b and c (10,) by Case 2 on every entry (NaN for b's known mass);
-    ``b_left``, ``c_left``: the same with the entries near reversals left out, over their own
-    σ̂; ``b_left_full``, ``c_left_full``: those estimates' errors over the σ̂ of all entries
-    (how much nearer the truth they are); ``gains``: the gains (n,).
+    ``b``, ``c``: payloads b and c (10,) by Case 2 on every entry under the gains' error model
+    (NaN for b's known mass); ``b_left``, ``c_left``: the same with the entries near every
+    drive's reversals left out, over their own σ̂; ``b_left_full``, ``c_left_full``: those
+    estimates' errors over the σ̂ of all entries (how much nearer the truth they are);
+    ``b_case2``, ``c_case2``: by Case 2 as ``drivegain identify`` makes it (the entries near
+    reversals of the drives the gains' κ̂ marks misfit left out, Newey-West σ̂); ``gains``: the
+    gains (n,); ``kappa``: the gains' κ̂ per drive.
     """
 
     variant: str
@@ -83,19 +92,22 @@ class SeedZ:
     c_left: np.ndarray
     b_left_full: np.ndarray
     c_left_full: np.ndarray
+    b_case2: np.ndarray
+    c_case2: np.ndarray
     gains: np.ndarray
+    kappa: np.ndarray
 
 
-def _one(task: tuple[str, int, bool]) -> SeedZ:
-    """z of the payloads and gains of one seed of ``random-closed-loop`` on a variant."""
+def _one(task: tuple[str, int, bool, str]) -> SeedZ:
+    """z of the payloads and gains of one seed of a closed-loop scenario on a variant."""
     from drivegain.identify.blas import limited_blas_threads
     from drivegain.identify.cases import fit_case, near_reversals, without_rows
     from drivegain.identify.compare import ours_gains
     from drivegain.validation.estimators import seed_designs
     from drivegain.validation.scenarios import SCENARIOS
 
-    variant, seed, noise_free = task
-    sc = next(s for s in SCENARIOS if s.key == "random-closed-loop")
+    variant, seed, noise_free, scenario = task
+    sc = next(s for s in SCENARIOS if s.key == scenario)
     if noise_free:
         sc = replace(sc, loop_noise_nm=0.0)
     world = _world(variant)
@@ -105,10 +117,11 @@ def _one(task: tuple[str, int, bool]) -> SeedZ:
         est = ours_gains(a, b, w.payload, w.robot.apriori_gains)
         names = list(w.base.names)
         out: list[np.ndarray] = []
+        case2: list[np.ndarray] = []
         for loaded, truth in ((b, w.payload.values), (c, w.validation.values)):
             pair = [a, loaded]
             # both under the gains' error model, as Case 2 was before it left out the
-            # entries near the reversals of sticking drives by itself (cases.sticking_drives)
+            # entries near the reversals of misfit drives by itself (cases.misfit_drives)
             full = fit_case(
                 "case2",
                 pair,
@@ -116,7 +129,7 @@ def _one(task: tuple[str, int, bool]) -> SeedZ:
                 names,
                 gain_cov=est.gain_cov,
                 noise=est.noise,
-                leave_out_sticks=False,
+                leave_out_misfit=False,
             )
             left_out = [without_rows(d, near_reversals(d)) for d in pair]
             left = fit_case(
@@ -126,21 +139,28 @@ def _one(task: tuple[str, int, bool]) -> SeedZ:
                 names,
                 gain_cov=est.gain_cov,
                 noise=est.noise,
-                leave_out_sticks=False,
+                leave_out_misfit=False,
             )
             f, lo = full.payloads[0], left.payloads[0]
             out += [(f.values - truth) / f.std, (lo.values - truth) / lo.std]
             out.append((lo.values - truth) / f.std)
+            dflt = fit_case(
+                "case2", pair, est.gains, names, gain_cov=est.gain_cov, noise=est.noise
+            ).payloads[0]
+            case2.append((dflt.values - truth) / dflt.std)
     # b's known parameters (its mass) scale the gains: their Case 2 values are the given ones
-    for z in out[:3]:
+    for z in [*out[:3], case2[0]]:
         z[world.payload.known_mask()] = np.nan
     zg = (est.gains - np.asarray(world.truth.gains, dtype=float)) / est.std
     zb, zb_left, zb_lf, zc, zc_left, zc_lf = out
-    return SeedZ(variant, seed, zb, zc, zb_left, zc_left, zb_lf, zc_lf, zg)
+    kappa = np.asarray(est.noise.whitening.kappa, dtype=float)
+    return SeedZ(
+        variant, seed, zb, zc, zb_left, zc_left, zb_lf, zc_lf, case2[0], case2[1], zg, kappa
+    )
 
 
 def _row(name: str, values: np.ndarray) -> str:
-    return f"{name:30s}" + "".join(f"{v:7.2f}" for v in values)
+    return f"{name:34s}" + "".join(f"{v:7.2f}" for v in values)
 
 
 def _coverage(z: np.ndarray) -> float:
@@ -150,7 +170,11 @@ def _coverage(z: np.ndarray) -> float:
 
 
 def study(
-    seeds: int, workers: int, variants: tuple[str, ...] = VARIANTS, noise_free: bool = False
+    seeds: int,
+    workers: int,
+    variants: tuple[str, ...] = VARIANTS,
+    noise_free: bool = False,
+    scenario: str = "random-closed-loop",
 ) -> list[SeedZ]:
     """Run the study and print its table (see the module docstring).
 
@@ -162,27 +186,30 @@ def study(
     Raises
     ------
     ValueError
-        Fewer than 2 seeds, or an unknown variant.
+        Fewer than 2 seeds, an unknown variant or a scenario that is not a closed loop.
     """
     from drivegain.config.payload import PAYLOAD_PARAMS
 
     if seeds < 2:
         raise ValueError(f"need 2 seeds or more, got {seeds}")
+    if scenario not in SCENARIO_KEYS:
+        raise ValueError(f"scenario must be one of {', '.join(SCENARIO_KEYS)}, got {scenario!r}")
     for v in variants:
         _world(v)  # an unknown variant fails here, before any work
-    tasks = [(v, s, noise_free) for v in variants for s in range(seeds)]
+    tasks = [(v, s, noise_free, scenario) for v in variants for s in range(seeds)]
     t0 = time.perf_counter()
     with ProcessPoolExecutor(workers) as pool:
         out = list(pool.map(_one, tasks))
     noise = "without the current-loop noise" if noise_free else "with the current-loop noise"
-    print(f"random-closed-loop {noise}, seeds 0-{seeds - 1}: z = (estimate − truth) / σ̂")
+    print(f"{scenario} {noise}, seeds 0-{seeds - 1}: z = (estimate − truth) / σ̂")
     print("'left out': Case 2 without the entries near reversals, z over its own σ̂;")
     print("'left out / σ̂ all': its errors over the σ̂ of the fit on every entry")
-    print(f"{'':30s}" + "".join(f"{p:>7s}" for p in PAYLOAD_PARAMS))
+    print(f"{'':34s}" + "".join(f"{p:>7s}" for p in PAYLOAD_PARAMS))
     fields = (
         ("", "b", "c"),
         ("left out: ", "b_left", "c_left"),
         ("left out / σ̂ all: ", "b_left_full", "c_left_full"),
+        ("Case 2 as identify: ", "b_case2", "c_case2"),
     )
     for v in variants:
         mine = [o for o in out if o.variant == v]
@@ -194,9 +221,12 @@ def study(
                     warnings.simplefilter("ignore", RuntimeWarning)
                     print(_row(f"{v}: {prefix}{which} mean", np.nanmean(z, axis=0)))
                     print(_row(f"{v}: {prefix}{which} std", np.nanstd(z, axis=0, ddof=1)))
-        for prefix, b, c in fields[:2]:
+        for prefix, b, c in (fields[0], fields[1], fields[3]):
             z = np.array([np.concatenate([getattr(o, b), getattr(o, c)]) for o in mine])
             print(f"{v}: {prefix}payload ±2σ coverage {_coverage(z):.1f} %")
+        kappa = np.array([o.kappa for o in mine])
+        print(_row(f"{v}: gains' κ̂ median per drive", np.median(kappa, axis=0)))
+        print(_row(f"{v}: gains' κ̂ smallest per drive", kappa.min(axis=0)))
         zg = np.array([o.gains for o in mine])
         print(_row(f"{v}: gains mean, j1-j{zg.shape[1]}", zg.mean(axis=0)))
     print(f"\n{len(tasks)} seeds of three recordings in {time.perf_counter() - t0:.0f} s")
@@ -209,6 +239,12 @@ def main() -> None:
     p.add_argument("--workers", type=int, default=2, help="processes (2)")
     p.add_argument("--noise-free", action="store_true", help="without the current-loop noise")
     p.add_argument(
+        "--scenario",
+        default="random-closed-loop",
+        choices=SCENARIO_KEYS,
+        help="the study's closed-loop scenario (random-closed-loop)",
+    )
+    p.add_argument(
         "--variants", default=",".join(VARIANTS), help=f"comma-separated, of {', '.join(VARIANTS)}"
     )
     a = p.parse_args()
@@ -219,7 +255,7 @@ def main() -> None:
             "--seeds needs 2 or more, --workers 1 or more, --variants some of "
             + ", ".join(VARIANTS)
         )
-    study(a.seeds, a.workers, variants, a.noise_free)
+    study(a.seeds, a.workers, variants, a.noise_free, a.scenario)
 
 
 if __name__ == "__main__":

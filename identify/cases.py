@@ -53,9 +53,9 @@ class CaseCovariance(StrEnum):
         "the maximum-likelihood gains' error model (its whitened errors' autocovariance), "
         "with the gains' covariance and their correlation with this fit"
     )
-    NEWEY_WEST_STICK = (
+    NEWEY_WEST_KEPT = (
         "HAC (Newey-West, Bartlett kernel) with the gains' covariance, on the entries away "
-        "from the reversals of drives that stick"
+        "from the reversals the gains' error model finds misfit"
     )
 
 
@@ -94,8 +94,9 @@ class CaseResult:
     covariance
         How the standard deviations were computed.
     left_out
-        Entries (sample and joint) the fit left out near reversals of drives that stick
-        (:func:`sticking_drives`); the error norms and R² still count every entry.
+        Entries (sample and joint) the fit left out near reversals of the drives whose
+        entries there the gains' error model finds misfit (:func:`misfit_drives`); the error
+        norms and R² still count every entry.
     """
 
     name: str
@@ -141,22 +142,24 @@ REVERSAL_SHARE_LIMIT = 0.05
 REVERSAL_MARGIN = 2
 
 
-#: A drive sticks at its reversals when the maximum-likelihood gains' κ̂ (the variance its
-#: entries near reversals add, per unit share of reversal, relative to its noise) is at least
-#: this: measured 0-0.13 per drive on exact tracking, 1.7-10 on the simulated cell's
-#: closed-loop drives (docs/model.md, "Case 2 where drives stick").
-STICK_KAPPA = 1.0
+#: A drive's entries near its reversals are misfit when the maximum-likelihood gains' κ̂ (the
+#: variance they add per unit share of reversal, relative to the drive's noise) is at least
+#: this: the drive sticks there (closed loop: κ̂ 1.7-10 per drive on the simulated cell) or its
+#: Coulomb sign is uncertain (a slow reversal under the encoder's quantum); where neither, κ̂
+#: stayed below 0.7 (docs/model.md, "Case 2 without the misfit reversals").
+MISFIT_KAPPA = 1.0
 
 
-def sticking_drives(noise: CaseNoise) -> np.ndarray:
-    """Which drives stick at their reversals by the gains' error model: κ̂ ≥ :data:`STICK_KAPPA`.
+def misfit_drives(noise: CaseNoise) -> np.ndarray:
+    """Which drives' entries near reversals the gains' error model finds misfit:
+    κ̂ ≥ :data:`MISFIT_KAPPA`.
 
     Returns
     -------
     numpy.ndarray
         (n,) bool, per drive.
     """
-    return np.asarray(noise.whitening.kappa, dtype=float) >= STICK_KAPPA
+    return np.asarray(noise.whitening.kappa, dtype=float) >= MISFIT_KAPPA
 
 
 def near_reversals(
@@ -234,18 +237,20 @@ def fit_case(
     gain_cov: np.ndarray | None = None,
     covariance: bool = True,
     noise: CaseNoise | None = None,
-    leave_out_sticks: bool = True,
+    leave_out_misfit: bool = True,
 ) -> CaseResult:
     """IDIM-WLS of the base parameters and every loaded run's 10 payload parameters.
 
     Rows of joint j are weighted by 1/σ_j from an OLS of joint j's equations alone
     (Gautier 1997); standard deviations by :func:`case_covariance`.
 
-    Where the gains' error model says drives stick at their reversals (:func:`sticking_drives`),
-    the entries near those reversals (:func:`near_reversals`) are left out of the fit and its
-    standard deviations, which are then Newey-West's with the gains' covariance: the stuck
-    drive's torque is a misfit, not noise, and it borrows the payload's inertias to explain it
-    (docs/model.md, "Case 2 where drives stick"). The error norms and R² count every entry.
+    Where the gains' error model finds a drive's entries near its reversals misfit
+    (:func:`misfit_drives`: it sticks there, or its Coulomb sign is uncertain), the entries
+    near those reversals (:func:`near_reversals`) are left out of the fit and its standard
+    deviations, which are then Newey-West's with the gains' covariance: that torque is a
+    misfit, not noise, and the fit would borrow the payload's inertias to explain it
+    (docs/model.md, "Case 2 without the misfit reversals"). The error norms and R² count
+    every entry.
 
     Parameters
     ----------
@@ -269,7 +274,7 @@ def fit_case(
         The error model of the estimator that gave ``gains`` (:mod:`.casenoise`), for
         standard deviations under it, with the gains' correlation with this fit's noise;
         None: Newey-West, the gains taken as independent.
-    leave_out_sticks
+    leave_out_misfit
         False fits every entry whatever the error model says.
     """
     gains = np.asarray(gains, dtype=float)
@@ -277,8 +282,8 @@ def fit_case(
         factors = [d.factors() for d in designs]
     every, every_factors = list(designs), list(factors)
     left_out = 0
-    if noise is not None and leave_out_sticks:
-        drives = sticking_drives(noise)
+    if noise is not None and leave_out_misfit:
+        drives = misfit_drives(noise)
         if drives.any():
             drops = [near_reversals(d, drives=drives) for d in designs]
             left_out = int(sum(int(x.sum()) for x in drops))
@@ -328,7 +333,7 @@ def fit_case(
     every_rows = sum(d.entries(j) for d in every for j in range(every[0].n))
     how = CaseCovariance.NEWEY_WEST
     if left_out:
-        how = CaseCovariance.NEWEY_WEST_STICK
+        how = CaseCovariance.NEWEY_WEST_KEPT
     elif noise is not None:
         how = CaseCovariance.ERROR_MODEL
     elif gain_cov is not None:

@@ -373,10 +373,10 @@ def markdown_report(
         if c.left_out:
             lines += [
                 "",
-                f"{c.name} left {c.left_out} entries (sample and joint) near reversals of "
-                "drives that stick out of its fit (the gains' error model shows them; "
-                'docs/model.md, "Case 2 where drives stick"): its equations are those it '
-                "fitted, its norms count every entry.",
+                f"{c.name} left {c.left_out} entries (sample and joint) out of its fit: those "
+                "near reversals of the drives whose entries there the gains' error model finds "
+                'misfit (docs/model.md, "Case 2 without the misfit reversals"). Its equations '
+                "are those it fitted, its norms count every entry.",
             ]
     fin = result.final
     lines += ["", f"Per joint ({fin.name}):", ""]

@@ -81,10 +81,16 @@ def coverage_text(
         "Ours accounts for it: its covariance is built from the whitened errors' "
         "autocovariance over a few lags, corrected for what the fit takes out of the "
         'residuals (docs/model.md, "Standard deviations"); the ablation with the Newey-West '
-        "sandwich it used before shows what that changes. The Case 2 payload parameters use "
-        "the Newey-West sandwich plus the gains' covariance carried through the fit. The "
-        "per-joint LS σ of joint 5 is too small for another reason: it ignores the "
-        "uncertainty of ĝ6, which enters joint 5's known column."
+        "sandwich it used before shows what that changes. Its Case 2 payload parameters "
+        "take their covariance from the same error model, the gains' share and its "
+        "correlation with the fit included; where that model finds a drive's entries near "
+        "its reversals misfit (κ̂ ≥ 1: the drives stick there, as in closed loop, or the "
+        "Coulomb sign is uncertain), Case 2 leaves those entries out and takes Newey-West's "
+        "sandwich on the entries it keeps, with the gains' covariance (docs/model.md, "
+        '"Case 2 without the misfit reversals"). The other methods\' Case 2 use the '
+        "Newey-West sandwich plus their gains' covariance. The per-joint LS σ of joint 5 is "
+        "too small for another reason: it ignores the uncertainty of ĝ6, which enters joint "
+        "5's known column."
     )
     return "\n".join(lines)
 

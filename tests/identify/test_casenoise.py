@@ -172,9 +172,9 @@ def test_case2_under_the_model_and_its_refusals(world, noisy_pair) -> None:
     cov = res.covariance[res.ml.nb : res.ml.nb + a.n, res.ml.nb : res.ml.nb + a.n]
     names = list(world.bases[world.robot.wrist_friction].names)
     plain = fit_case("case2", [a, b], res.gains, names, gain_cov=cov)
-    # every entry: this fixture's κ̂ reaches the stick gate on drives 4 and 6 (1.1-2.4)
+    # every entry: this fixture's κ̂ reaches the misfit gate on drives 4 and 6 (1.1-2.4)
     model = fit_case(
-        "case2", [a, b], res.gains, names, gain_cov=cov, noise=res.noise, leave_out_sticks=False
+        "case2", [a, b], res.gains, names, gain_cov=cov, noise=res.noise, leave_out_misfit=False
     )
     # the same estimate, another covariance of the same size
     np.testing.assert_array_equal(model.base, plain.base)

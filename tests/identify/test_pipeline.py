@@ -11,6 +11,7 @@ import pytest
 
 from drivegain.cli import main
 from drivegain.config import resource_path
+from drivegain.identify.cases import MISFIT_KAPPA, CaseCovariance
 
 ROBOT = resource_path("tx40.toml")
 PAYLOAD = resource_path("payloads/calibrated-4590g.toml")
@@ -65,8 +66,19 @@ def test_report_json_follows_contracts_5(full_report: Path, world) -> None:
     assert isinstance(m["samples"], int) and m["samples"] > 1000
     # Extras: both cases, the validation payload, the α curve, cross-validation.
     assert set(doc["cases"]) == {"case1", "case2"}
-    # Case 2's σ under the ML gains' error model; Case 1's (a priori gains) Newey-West
-    assert doc["cases"]["case2"]["covariance"].startswith("the maximum-likelihood gains' error")
+    # Case 2's σ under the ML gains' error model, or Newey-West's on the entries it keeps when
+    # that model finds a drive's reversals misfit; Case 1's (a priori gains) Newey-West
+    case2 = doc["cases"]["case2"]
+    misfit = [k["drive"] for k in doc["ml"]["reversal_variance"] if k["kappa"] >= MISFIT_KAPPA]
+    if misfit:  # these logs: j4 (κ̂ 5.8: a slow reversal under the encoder's quantum)
+        assert case2["covariance"] == CaseCovariance.NEWEY_WEST_KEPT
+        assert case2["left_out_entries"] > 0
+        text = (full_report / "report.md").read_text()
+        assert f"case2 left {case2['left_out_entries']} entries" in text
+    else:
+        assert case2["covariance"] == CaseCovariance.ERROR_MODEL
+        assert case2["left_out_entries"] == 0
+    assert doc["cases"]["case1"]["left_out_entries"] == 0
     assert doc["cases"]["case1"]["covariance"] == "HAC (Newey-West, Bartlett kernel)"
     assert doc["validation"]["case2"]["mass"]["value"] == pytest.approx(1.686, rel=0.02)
     ml = doc["ml"]

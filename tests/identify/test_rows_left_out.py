@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from drivegain.identify.cases import (
-    STICK_KAPPA,
+    MISFIT_KAPPA,
     CaseCovariance,
     fit_case,
     near_reversals,
@@ -142,9 +142,9 @@ def test_near_reversals_follows_the_drives_a_joint_carries(pair) -> None:
         near_reversals(d, drives=drives[:-1])
 
 
-def test_case2_leaves_out_the_reversals_of_drives_that_stick(world, pair) -> None:
+def test_case2_leaves_out_the_reversals_the_error_model_finds_misfit(world, pair) -> None:
     """The gate on the gains' κ̂: below it Case 2 is the error model's on every entry; at it
-    the entries near the sticking drives' reversals are left out and σ is Newey-West's."""
+    the entries near those drives' reversals are left out and σ is Newey-West's."""
     a, b = pair
     res = estimate_gains(a, b, world.payload, world.robot.apriori_gains, estimator=Estimator.ML)
     g = slice(res.ml.nb, res.ml.nb + a.n)
@@ -158,19 +158,19 @@ def test_case2_leaves_out_the_reversals_of_drives_that_stick(world, pair) -> Non
     def case2(noise, **kw):
         return fit_case("case2", [a, b], res.gains, names, gain_cov=cov, noise=noise, **kw)
 
-    quiet = with_kappa(np.full(a.n, 0.99 * STICK_KAPPA))
+    quiet = with_kappa(np.full(a.n, 0.99 * MISFIT_KAPPA))
     kept = case2(quiet)
-    every = case2(quiet, leave_out_sticks=False)
+    every = case2(quiet, leave_out_misfit=False)
     assert (kept.left_out, kept.covariance) == (0, CaseCovariance.ERROR_MODEL)
     np.testing.assert_array_equal(kept.payloads[0].std, every.payloads[0].std)
 
     kappa = np.zeros(a.n)
-    kappa[[0, a.n - 1]] = STICK_KAPPA  # drive 1 and the coupled wrist's
-    drives = kappa >= STICK_KAPPA
+    kappa[[0, a.n - 1]] = MISFIT_KAPPA  # drive 1 and the coupled wrist's
+    drives = kappa >= MISFIT_KAPPA
     drops = [near_reversals(d, drives=drives) for d in (a, b)]
     assert 0 < sum(int(x.sum()) for x in drops) < sum(x.size for x in drops)
     fit = case2(with_kappa(kappa))
-    assert fit.covariance == CaseCovariance.NEWEY_WEST_STICK
+    assert fit.covariance == CaseCovariance.NEWEY_WEST_KEPT
     assert fit.left_out == sum(int(x.sum()) for x in drops)
     # the fit and σ of the kept entries, Newey-West with the gains taken as independent
     left = [without_rows(d, x) for d, x in zip((a, b), drops, strict=True)]

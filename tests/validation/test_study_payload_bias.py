@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from drivegain.dynamics.params import truth_vector
+from drivegain.identify.cases import MISFIT_KAPPA
 from drivegain.validation.estimators import METHODS, OURS, run_seed
 from drivegain.validation.scenarios import SCENARIOS
 from drivegain.validation.statistics import payload_z
@@ -31,6 +32,9 @@ def test_the_cell_variant_is_the_study_scenario(capsys: pytest.CaptureFixture[st
         "cell: left out / σ̂ all: c std",
         "cell: payload ±2σ coverage",
         "cell: left out: payload ±2σ coverage",
+        "cell: Case 2 as identify: b mean",
+        "cell: Case 2 as identify: payload ±2σ coverage",
+        "cell: gains' κ̂ median per drive",
         "cell: gains mean, j1-j6",
     ):
         assert row in text
@@ -41,13 +45,16 @@ def test_the_cell_variant_is_the_study_scenario(capsys: pytest.CaptureFixture[st
     seed = run_seed(world, 1, scenario, tuple(m for m in METHODS if m.key == OURS))
     zb = payload_z([seed], OURS, world.payload.values, "b")[0]
     zb[world.payload.known_mask()] = np.nan
-    np.testing.assert_allclose(out[1].b, zb, rtol=1e-9, equal_nan=True)
+    np.testing.assert_allclose(out[1].b_case2, zb, rtol=1e-9, equal_nan=True)
     zc = payload_z([seed], OURS, world.validation.values, "c")[0]
-    np.testing.assert_allclose(out[1].c, zc, rtol=1e-9)
+    np.testing.assert_allclose(out[1].c_case2, zc, rtol=1e-9)
+    # the drives stick in this scenario: Case 2 leaves entries out by itself (κ̂ marks them)
+    assert (out[1].kappa >= MISFIT_KAPPA).any()
+    assert not np.allclose(out[1].c_case2, out[1].c)
     zg = (seed.gains[OURS] - world.truth.gains) / seed.std[OURS]
     np.testing.assert_allclose(out[1].gains, zg, rtol=1e-9)
     # payload b's mass is known (it scales the gains): no z; payload c has all ten
-    for z in (out[1].b, out[1].b_left, out[1].b_left_full):
+    for z in (out[1].b, out[1].b_left, out[1].b_left_full, out[1].b_case2):
         assert np.isnan(z[world.payload.known_mask()]).all()
     for z in (out[1].c_left, out[1].c_left_full):
         assert np.isfinite(z).all()
