@@ -101,8 +101,9 @@ class SeedZ:
 def _one(task: tuple[str, int, bool, str]) -> SeedZ:
     """z of the payloads and gains of one seed of a closed-loop scenario on a variant."""
     from drivegain.identify.blas import limited_blas_threads
-    from drivegain.identify.cases import fit_case, near_reversals, without_rows
+    from drivegain.identify.cases import PayloadEstimate, fit_case, near_reversals, without_rows
     from drivegain.identify.compare import ours_gains
+    from drivegain.identify.design import Design
     from drivegain.validation.estimators import seed_designs
     from drivegain.validation.scenarios import SCENARIOS
 
@@ -117,45 +118,32 @@ def _one(task: tuple[str, int, bool, str]) -> SeedZ:
         est = ours_gains(a, b, w.payload, w.robot.apriori_gains)
         names = list(w.base.names)
         out: list[np.ndarray] = []
-        case2: list[np.ndarray] = []
+        out_case2: list[np.ndarray] = []
+
+        def case2(designs: list[Design], **kw: bool) -> PayloadEstimate:
+            fit = fit_case(
+                "case2", designs, est.gains, names, gain_cov=est.gain_cov, noise=est.noise, **kw
+            )
+            return fit.payloads[0]
+
         for loaded, truth in ((b, w.payload.values), (c, w.validation.values)):
             pair = [a, loaded]
             # both under the gains' error model, as Case 2 was before it left out the
             # entries near the reversals of misfit drives by itself (cases.misfit_drives)
-            full = fit_case(
-                "case2",
-                pair,
-                est.gains,
-                names,
-                gain_cov=est.gain_cov,
-                noise=est.noise,
-                leave_out_misfit=False,
-            )
-            left_out = [without_rows(d, near_reversals(d)) for d in pair]
-            left = fit_case(
-                "left",
-                left_out,
-                est.gains,
-                names,
-                gain_cov=est.gain_cov,
-                noise=est.noise,
-                leave_out_misfit=False,
-            )
-            f, lo = full.payloads[0], left.payloads[0]
+            f = case2(pair, leave_out_misfit=False)
+            lo = case2([without_rows(d, near_reversals(d)) for d in pair], leave_out_misfit=False)
             out += [(f.values - truth) / f.std, (lo.values - truth) / lo.std]
             out.append((lo.values - truth) / f.std)
-            dflt = fit_case(
-                "case2", pair, est.gains, names, gain_cov=est.gain_cov, noise=est.noise
-            ).payloads[0]
-            case2.append((dflt.values - truth) / dflt.std)
+            dflt = case2(pair)
+            out_case2.append((dflt.values - truth) / dflt.std)
     # b's known parameters (its mass) scale the gains: their Case 2 values are the given ones
-    for z in [*out[:3], case2[0]]:
+    for z in [*out[:3], out_case2[0]]:
         z[world.payload.known_mask()] = np.nan
     zg = (est.gains - np.asarray(world.truth.gains, dtype=float)) / est.std
     zb, zb_left, zb_lf, zc, zc_left, zc_lf = out
     kappa = np.asarray(est.noise.whitening.kappa, dtype=float)
     return SeedZ(
-        variant, seed, zb, zc, zb_left, zc_left, zb_lf, zc_lf, case2[0], case2[1], zg, kappa
+        variant, seed, zb, zc, zb_left, zc_left, zb_lf, zc_lf, out_case2[0], out_case2[1], zg, kappa
     )
 
 
