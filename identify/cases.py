@@ -277,6 +277,9 @@ def fit_case(
     leave_out_misfit
         False fits every entry whatever the error model says.
     """
+    if noise is not None and gain_cov is None:
+        # checked here too: leaving entries out drops the model before case_covariance sees it
+        raise UsageError("a noise model comes with the gains' covariance (gain_cov)")
     gains = np.asarray(gains, dtype=float)
     if factors is None:
         factors = [d.factors() for d in designs]

@@ -13,6 +13,7 @@ import dataclasses
 import numpy as np
 import pytest
 
+from drivegain.errors import UsageError
 from drivegain.identify.cases import (
     MISFIT_KAPPA,
     CaseCovariance,
@@ -185,3 +186,5 @@ def test_case2_leaves_out_the_reversals_the_error_model_finds_misfit(world, pair
     rho = np.linalg.norm(np.concatenate(measured) - np.concatenate(computed))
     np.testing.assert_allclose(fit.residual_norm, rho, rtol=1e-9)
     assert fit.residual_norm != ref.residual_norm
+    with pytest.raises(UsageError, match="gain_cov"):  # refused whether or not entries go
+        fit_case("case2", [a, b], res.gains, names, noise=with_kappa(kappa))
