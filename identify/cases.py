@@ -284,13 +284,10 @@ def fit_case(
     if factors is None:
         factors = [d.factors() for d in designs]
     every, every_factors = list(designs), list(factors)
-    left_out = 0
     if noise is not None and leave_out_misfit:
         drives = misfit_drives(noise)
-        if drives.any():
-            drops = [near_reversals(d, drives=drives) for d in designs]
-            left_out = int(sum(int(x.sum()) for x in drops))
-        if left_out:
+        drops = [near_reversals(d, drives=drives) for d in designs]
+        if any(x.any() for x in drops):
             designs = [without_rows(d, x) for d, x in zip(designs, drops, strict=True)]
             factors = [d.factors() for d in designs]
             noise = None
@@ -334,6 +331,7 @@ def fit_case(
     r2, joint_rel = _joint_quality(every, gains, chi, [p.values for p in payloads])
     rho = float(np.sqrt(res_sq.sum()))
     every_rows = sum(d.entries(j) for d in every for j in range(every[0].n))
+    left_out = every_rows - rows  # entries the designs' own row weights drop are in neither
     how = CaseCovariance.NEWEY_WEST
     if left_out:
         how = CaseCovariance.NEWEY_WEST_KEPT

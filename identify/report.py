@@ -352,18 +352,17 @@ def markdown_report(
         )
     lines += _table(header, rows)
 
+    fitted = [result.case1] + ([result.case2] if result.case2 is not None else [])
     if result.final.payloads:
         lines += ["", "## Payload parameters (Table 2)", ""]
-        cases = [result.case1] + ([result.case2] if result.case2 is not None else [])
         head = ["par.", "unit", "nominal"]
-        for c in cases:
+        for c in fitted:
             head += [f"{c.name} value", "2σ", "%σ"]
-        lines += _table(head, _payload_rows([c.payloads[0] for c in cases]))
+        lines += _table(head, _payload_rows([c.payloads[0] for c in fitted]))
         lines += ["", "Inertia at the frame origin of the link the payload is fixed to."]
 
     lines += ["", "## Quality of identification (Table 4)", ""]
     rows = []
-    fitted = [result.case1] + ([result.case2] if result.case2 is not None else [])
     for c in fitted:
         rows.append(
             [c.name, _g(c.residual_norm), _g(c.relative_error), _g(c.sigma_rho), str(c.rows)]
