@@ -18,7 +18,9 @@ Usage: python benchmarks/bench_identify.py [--quick] [--keep DIR]
        python benchmarks/bench_identify.py --baseline-ref [REF] [--quick] [--repeats K]
            whole ``drivegain identify`` commands of this tree beside those of REF (default
            c03ea6b, the release before issue 19), installed in a temporary venv by the
-           benchmark (benchmarks/baseline.py): (a) and (c) above, wall and CPU time, peak RSS.
+           benchmark (benchmarks/baseline.py): (a) and (c) above and (d), the 240 s point of the
+           scaling series (its Coulomb sign's cut-off is chosen by the runs' likelihood), wall
+           and CPU time, peak RSS.
 """
 
 from __future__ import annotations
@@ -351,6 +353,13 @@ def compare_with_baseline(ref: str, work: Path, quick: bool, repeats: int) -> No
     else:
         args = ["identify", "--robot", robot, "--unloaded", str(real), "--gains", "gear-ratios"]
         cases.append(("(a) real TX-40, 45 000 samples", args, True))
+    # The runs of the scaling series' 240 s point: their sign cut-off is chosen by likelihood.
+    a, b = work / "unloaded-240s-250Hz.mcap", work / "loaded-240s-250Hz.mcap"
+    if not (a.exists() and b.exists()):
+        print("writing the 2 x 240 s at 250 Hz logs (not timed)...", flush=True)
+        a, b = _write_sim_logs(work, 240.0, 250.0, seed=240)
+    args = ["identify", "--robot", robot, "--unloaded", str(a), "--loaded", str(b)]
+    cases.append(("(d) 2 x 240 s at 250 Hz, sign choice", [*args, "--payload", payload], False))
     if not quick:
         a, b = work / "unloaded-600s-1000Hz.mcap", work / "loaded-600s-1000Hz.mcap"
         if not (a.exists() and b.exists()):

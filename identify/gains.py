@@ -18,7 +18,7 @@ from enum import StrEnum
 import numpy as np
 
 from drivegain.config.payload import PAYLOAD_PARAMS, Payload
-from drivegain.errors import IdentificationError, InputError
+from drivegain.errors import IdentificationError, InputError, UsageError
 from drivegain.identify.bootstrap import BootstrapSpread, bootstrap_fit
 from drivegain.identify.casenoise import CaseNoise, case_noise
 from drivegain.identify.design import Design, ls_transform
@@ -147,6 +147,7 @@ def estimate_gains(
     step: Step = no_step,
     parallel: bool = False,
     bootstrap: int = 0,
+    fit: MLFit | None = None,
 ) -> GainIdentification:
     """Drive gains from an unloaded and a loaded run by the chosen estimator.
 
@@ -155,7 +156,10 @@ def estimate_gains(
     chooses :attr:`Estimator.ML` (default, :func:`~drivegain.identify.ml.ml_fit` and the
     errors-in-variables test) or :attr:`Estimator.PAPER` (:func:`identify_gains`);
     ``parallel``: the runs are long enough for the ML steps to use a forked child;
-    ``bootstrap``: replicates of the ML fit's residual block bootstrap (0: none).
+    ``bootstrap``: replicates of the ML fit's residual block bootstrap (0: none); ``fit``:
+    the ML fit of these designs made already, with the test's sums (``ml_fit(a, b, payload,
+    influence=True)``, as :func:`~drivegain.identify.signchoice.choose_sign` keeps it), used
+    instead of fitting again (ML estimator only).
 
     Raises
     ------
@@ -165,7 +169,11 @@ def estimate_gains(
         :data:`~drivegain.identify.bootstrap.MIN_REPLICATES`.
     IdentificationError
         The data do not determine the gains.
+    UsageError
+        ``fit`` with the paper's estimator, without the test's sums, or of other runs.
     """
+    if fit is not None:
+        _check_fit(fit, a, b, estimator)
     if estimator is Estimator.PAPER:
         if bootstrap:
             raise InputError(
@@ -180,7 +188,8 @@ def estimate_gains(
     # The model's arrays are built once for the fit and the test, and so is the least squares
     # (the fit's start, MLFit.linear); the fit's covariance pass also sums the test's scores.
     runs = run_pair(a, b, payload)
-    fit = ml_fit(a, b, payload, step=step, runs=runs, parallel=parallel, influence=True)
+    if fit is None:
+        fit = ml_fit(a, b, payload, step=step, runs=runs, parallel=parallel, influence=True)
     step("errors-in-variables test")
     test = eiv_test(fit, a, b, payload, runs=runs, ls=fit.linear)
     spread = None
@@ -224,6 +233,20 @@ def estimate_gains(
         bootstrap=spread,
         noise=noise,
     )
+
+
+def _check_fit(fit: MLFit, a: Design, b: Design, estimator: Estimator) -> None:
+    """Refuse a fit :func:`estimate_gains` cannot take for its own (what it can check: the
+    estimator, the test's sums, the runs' size and the model's unknowns)."""
+    if estimator is not Estimator.ML:
+        raise UsageError("a maximum-likelihood fit was given to the paper's estimator")
+    if fit.influence is None:
+        raise UsageError("the given fit lacks the errors-in-variables test's sums (influence=True)")
+    if fit.rows != (a.rows + b.rows) * a.n or fit.chi.size != a.nb or fit.gains.size != a.n:
+        raise UsageError(
+            f"the given fit is of other runs ({fit.rows} equations, {fit.chi.size} base "
+            f"parameters; these runs have {(a.rows + b.rows) * a.n} and {a.nb})"
+        )
 
 
 def _poorly_determined(gains: np.ndarray, std: np.ndarray) -> list[str]:

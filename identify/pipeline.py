@@ -35,6 +35,7 @@ from drivegain.identify.diagnose import current_warnings, other_channel_hint
 from drivegain.identify.gains import Estimator
 from drivegain.identify.loading import Loaded, load_and_prepare
 from drivegain.identify.procedure import (
+    FitMade,
     GivenGains,
     Options,
     Problem,
@@ -317,17 +318,18 @@ def _choose_sign(
     form: WristFriction,
     bp: BaseParameters | None,
     loaded: list[Loaded],
-) -> list[Loaded]:
+) -> tuple[list[Loaded], FitMade | None]:
     """``loaded``, or the runs prepared again with the Coulomb sign at the position cut-off
     when that explains runs a and b's currents better (:mod:`.signchoice`); the report's runs
-    say which, and by how much. ``bp``: the friction form's base parameters (None: the
-    procedure reports the form missing). Both preparations are held until the choice: peak
-    memory about twice one's."""
+    say which, and by how much. With them the kept preparation's fit of runs a and b, for the
+    gains' estimate (None when there was no choice). ``bp``: the friction form's base
+    parameters (None: the procedure reports the form missing). Both preparations are held
+    until the choice: peak memory about twice one's."""
     payload = loaded[1].prepared.payload
     if bp is None or payload is None:  # the procedure reports either
-        return loaded
+        return loaded, None
     if not has_choice(x.prepared.filter for x in loaded):
-        return loaded
+        return loaded, None
     # Every run again, not only a and b: the stored columns depend on all runs' payloads.
     _, other = load_and_prepare(model, specs, replace(req, sign_at_cutoff=True), progress)
     pairs = [
@@ -339,7 +341,8 @@ def _choose_sign(
     progress.remove_task(task)
     kept = loaded if choice.chosen == 0 else other
     note = choice.note()
-    return [replace(x, info=replace(x.info, notes=[*x.info.notes, note])) for x in kept]
+    made = None if choice.fit is None else FitMade(form, choice.fit)
+    return [replace(x, info=replace(x.info, notes=[*x.info.notes, note])) for x in kept], made
 
 
 def _run_identify(req: IdentifyRequest) -> IdentifyOutcome:
@@ -365,8 +368,9 @@ def _run_identify(req: IdentifyRequest) -> IdentifyOutcome:
         if req.validate is not None:
             specs.append((req.validate, "validation", vpayload))
         bases, loaded = load_and_prepare(model, specs, req, display.progress)
+        made = None
         if req.loaded is not None and given is None:
-            loaded = _choose_sign(
+            loaded, made = _choose_sign(
                 model, specs, req, display.progress, robot, form, bases.get(form), loaded
             )
         prepared = [x.prepared for x in loaded]
@@ -381,6 +385,7 @@ def _run_identify(req: IdentifyRequest) -> IdentifyOutcome:
             unloaded=by_label["unloaded"],
             loaded=by_label.get("loaded"),
             validation=by_label.get("validation"),
+            gains_fit=made,
         )
         task = display.progress.add_task("identification", total=None)
         options = Options(

@@ -53,6 +53,7 @@ from drivegain.identify.gains import (
     estimate_gains,
     no_step,
 )
+from drivegain.identify.ml import MLFit
 from drivegain.identify.prepare import PreparedRun
 
 
@@ -63,6 +64,19 @@ class GivenGains:
     values: np.ndarray
     std: np.ndarray | None
     source: str
+
+
+@dataclass(frozen=True)
+class FitMade:
+    """The maximum-likelihood fit of runs a and b, made before the procedure (the Coulomb
+    sign's choice, :mod:`~drivegain.identify.signchoice`) on the designs of ``friction``.
+
+    The gains' estimate takes it rather than fitting the same runs again, when it is of the
+    procedure's friction form and estimator.
+    """
+
+    friction: WristFriction
+    fit: MLFit
 
 
 @dataclass(frozen=True)
@@ -81,6 +95,8 @@ class Problem:
         Run b (with its payload), or None.
     validation
         A third run with a second payload, or None.
+    gains_fit
+        The maximum-likelihood fit of ``unloaded`` and ``loaded`` made already, or None.
     """
 
     robot: Robot
@@ -88,6 +104,7 @@ class Problem:
     unloaded: PreparedRun
     loaded: PreparedRun | None = None
     validation: PreparedRun | None = None
+    gains_fit: FitMade | None = None
 
 
 @dataclass(frozen=True)
@@ -291,6 +308,12 @@ def _run_procedure(problem: Problem, options: Options, step: Step) -> ProcedureR
         if b is not None:
             # Invariant, checked above: a loaded run always has its payload.
             assert b.run.payload is not None
+            made = problem.gains_fit
+            reuse = (
+                made.fit
+                if made is not None and made.friction is form and options.estimator is Estimator.ML
+                else None
+            )
             try:
                 wtls = estimate_gains(
                     a,
@@ -303,6 +326,7 @@ def _run_procedure(problem: Problem, options: Options, step: Step) -> ProcedureR
                     step=step,
                     parallel=long_runs(main),
                     bootstrap=options.bootstrap,
+                    fit=reuse,
                 )
             except BaseException:
                 pending1.cancel()

@@ -13,22 +13,23 @@ excitations cross one encoder step near a reversal in 1-3 ms, as do the exact-tr
 of the shipped one. The currents do. When the rule kept the sign above the position cut-off,
 the runs are prepared a second time with the sign at the position cut-off and the
 maximum-likelihood fit of runs a and b is made on both; the preparation whose fit explains the
-same currents better (smaller :attr:`~drivegain.identify.ml.MLFit.neg_log_lik`) is kept.
-Plain functions.
+same currents better (smaller :attr:`~drivegain.identify.ml.MLFit.neg_log_lik`) is kept, and
+so is its fit: the gains' estimate takes it rather than fitting the same runs again
+(:func:`~drivegain.identify.gains.estimate_gains`'s ``fit``). Plain functions.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from drivegain.config.payload import Payload
 from drivegain.errors import IdentificationError
 from drivegain.identify.design import Design
-from drivegain.identify.ml import ml_fit
+from drivegain.identify.ml import MLFit, ml_fit
 from drivegain.identify.signal import FilterSettings
 
 
@@ -45,11 +46,15 @@ class SignChoice:
     neg_log_lik
         Each candidate's −2 log L per sample (:attr:`~drivegain.identify.ml.MLFit.neg_log_lik`);
         NaN where its fit failed.
+    fit
+        The kept candidate's fit, with the errors-in-variables test's sums
+        (``ml_fit(..., influence=True)``); None when every fit failed.
     """
 
     chosen: int
     sign_cutoff_hz: tuple[float, ...]
     neg_log_lik: tuple[float, ...]
+    fit: MLFit | None = field(default=None, repr=False, compare=False)
 
     def note(self) -> str:
         """One line for the report: what was chosen and by how much."""
@@ -115,7 +120,9 @@ def choose_sign(
     Returns
     -------
     SignChoice
-        The smallest −2 log L per sample; ties, and every fit failing, keep the first.
+        The smallest −2 log L per sample; ties, and every fit failing, keep the first. Its
+        :attr:`~SignChoice.fit` is the fit :func:`~drivegain.identify.gains.estimate_gains`
+        would make of the kept candidate.
 
     Raises
     ------
@@ -132,15 +139,22 @@ def choose_sign(
         ):
             raise ValueError("the candidates' runs keep different entries: not comparable")
     values = []
+    fits: list[MLFit | None] = []
     for a, b in candidates:
         try:
-            values.append(ml_fit(a, b, payload, parallel=parallel).neg_log_lik)
+            # With the test's sums, as the gains' estimate fits: the winner's fit is reused
+            # there. They come from the covariance pass and cost a few % of the fit.
+            fit = ml_fit(a, b, payload, parallel=parallel, influence=True)
         except IdentificationError:
             # a preparation the fit cannot use is not the likelier one
-            values.append(math.nan)
+            fit = None
+        fits.append(fit)
+        values.append(math.nan if fit is None else fit.neg_log_lik)
     finite = [(v, i) for i, v in enumerate(values) if math.isfinite(v)]
     chosen = min(finite)[1] if finite else 0
     cutoffs = tuple(
         math.nan if a.run.filter is None else a.run.filter.sign_cutoff for a, _ in candidates
     )
-    return SignChoice(chosen=chosen, sign_cutoff_hz=cutoffs, neg_log_lik=tuple(values))
+    return SignChoice(
+        chosen=chosen, sign_cutoff_hz=cutoffs, neg_log_lik=tuple(values), fit=fits[chosen]
+    )

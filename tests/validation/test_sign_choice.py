@@ -76,6 +76,9 @@ def test_drives_that_dwell_keep_the_higher_cutoff(dwelling) -> None:
     gap = choice.neg_log_lik[1] - choice.neg_log_lik[0]
     assert gap > 1.0  # per sample: e^(1/6) ≈ 1.18 × the variance of every drive, or more
     assert "chosen by the runs' likelihood" in choice.note()
+    # The kept candidate's fit, with the test's sums, for the gains' estimate to reuse.
+    assert choice.fit is not None and choice.fit.influence is not None
+    assert choice.fit.neg_log_lik == choice.neg_log_lik[0]
     # The order of the candidates does not decide.
     again = choose_sign([(pos[0], pos[1]), (rule[0], rule[1])], world.payload)
     assert again.chosen == 1 and again.neg_log_lik == choice.neg_log_lik[::-1]
@@ -132,7 +135,15 @@ def test_a_candidate_whose_fit_fails_is_not_chosen(dwelling, monkeypatch) -> Non
     monkeypatch.setattr(sc, "ml_fit", failing_on_the_first)
     choice = choose_sign([(rule[0], rule[1]), (pos[0], pos[1])], world.payload)
     assert choice.chosen == 1 and np.isnan(choice.neg_log_lik[0])
+    assert choice.fit is not None and choice.fit.neg_log_lik == choice.neg_log_lik[1]
     assert "its fit failed" in choice.note()
+
+    def failing(a, b, payload, **kw):
+        raise IdentificationError("no")
+
+    monkeypatch.setattr(sc, "ml_fit", failing)
+    none = choose_sign([(rule[0], rule[1]), (pos[0], pos[1])], world.payload)
+    assert none.chosen == 0 and none.fit is None  # every fit failed: the first, no fit
 
 
 def test_candidates_of_other_entries_are_refused(dwelling) -> None:
