@@ -279,7 +279,7 @@ def _setup_section(data: dict[str, Any], world: World) -> str:
     add(
         "\n".join(
             table(
-                ["scenario", "seeds", "noise"],
+                ["scenario", "seeds", "noise", *PREPARATION_HEADER],
                 [
                     [
                         sc.key,
@@ -295,6 +295,7 @@ def _setup_section(data: dict[str, Any], world: World) -> str:
                             if sc.current_fraction
                             else ""
                         ),
+                        *preparation_cells(data["monte_carlo"][sc.key].get("preparation")),
                     ]
                     for sc in scen
                 ],
@@ -302,6 +303,27 @@ def _setup_section(data: dict[str, Any], world: World) -> str:
         )
     )
     return "\n".join(L)
+
+
+#: The scenario table's columns on how the seeds were prepared and fitted.
+PREPARATION_HEADER = ("Coulomb sign at the position cut-off", "ours' Case 2 left entries out")
+
+
+def preparation_cells(prep: dict[str, Any] | None) -> list[str]:
+    """The scenario table's :data:`PREPARATION_HEADER` cells from a scenario's
+    ``preparation`` summary; a dash for a study run before it was recorded."""
+    if prep is None:
+        return ["–", "–"]
+    at = prep["sign_at_position"]
+    cutoffs = prep["sign_cutoff_hz"]
+    sign = "exact derivatives" if at is None else f"{100 * at:.0f} % of seeds"
+    if cutoffs:
+        sign += " (" + ", ".join(f"{hz:g}" for hz in cutoffs) + " Hz)"
+    seeds, median = prep["case2_left_out_seeds"], prep["case2_left_out_median"]
+    left = "–" if seeds is None else f"{100 * seeds:.0f} % of seeds"
+    if median is not None:
+        left += f" ({100 * median:.0f} % of entries, median)"
+    return [sign, left]
 
 
 def _methods_section() -> str:

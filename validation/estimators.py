@@ -284,6 +284,12 @@ class SeedResult:
         :func:`search_at_edge`).
     failures
         ``"Type: message"`` of the estimators that raised.
+    sign_cutoff_hz, position_cutoff_hz
+        Run a's cut-off of the Coulomb columns' sign velocity as prepared (after
+        :func:`run_designs`' choice) and of the positions, Hz; NaN with exact derivatives.
+    left_out
+        Per method: the share (0-1) of run b's Case 2 fit's entries left out near misfit
+        reversals (:attr:`~drivegain.identify.cases.CaseResult.left_out`).
     """
 
     seed: int
@@ -301,6 +307,9 @@ class SeedResult:
     details: dict[str, dict[str, float]] = field(default_factory=dict)
     at_edge: dict[str, bool] = field(default_factory=dict)
     failures: dict[str, str] = field(default_factory=dict)
+    sign_cutoff_hz: float = math.nan
+    position_cutoff_hz: float = math.nan
+    left_out: dict[str, float] = field(default_factory=dict)
 
 
 def search_at_edge(details: dict[str, float]) -> bool:
@@ -372,6 +381,9 @@ def run_seed(
     diagonal = [diagonal_design(d) for d in coupled]
     names = list(bp.names)
     out = SeedResult(seed=seed, scenario=scenario.key)
+    settings = coupled[0].run.filter
+    if settings is not None:
+        out.sign_cutoff_hz, out.position_cutoff_hz = settings.sign_cutoff, settings.cutoff_hz
 
     def payload_fits(
         key: str, designs: list[Design], gains: np.ndarray, est: GainEstimate | None = None
@@ -386,6 +398,7 @@ def run_seed(
         out.payload_c[key] = fc.payloads[0].values
         out.payload_c_std[key] = fc.payloads[0].std
         out.error_norms[key] = (fb.residual_norm, fb.relative_error, fb.sigma_rho)
+        out.left_out[key] = fb.left_out / (fb.rows + fb.left_out)
 
     # Methods sharing a run function and a current matrix share its result (an alias).
     done: dict[tuple[int, bool], tuple[GainEstimate | str, float]] = {}

@@ -275,6 +275,7 @@ def scenario_summary(
         "seeds": len(results),
         "methods": stats,
         "cases": case,
+        "preparation": preparation_summary(results),
         "alpha": {
             "median": float(np.median(alphas)),
             "min": float(alphas.min()),
@@ -285,6 +286,35 @@ def scenario_summary(
             ),
         },
         "block": {"median": float(np.median(blocks)), "max": float(blocks.max())},
+    }
+
+
+def preparation_summary(results: Sequence[SeedResult]) -> dict[str, Any]:
+    """How the seeds' runs were prepared and fitted, beside what they gave.
+
+    Returns
+    -------
+    dict
+        ``sign_at_position``: share of the seeds (with filtered derivatives) whose Coulomb
+        sign was taken at the position cut-off (by the encoder rule or by the likelihood's
+        choice; None when every seed has exact derivatives), and ``sign_cutoff_hz``: the sign
+        cut-offs used, sorted, each once; ``case2_left_out_seeds``: share of the seeds whose
+        Case 2 (ours, run b) left entries out near misfit reversals, and
+        ``case2_left_out_median``: the median share of entries left out over those seeds
+        (None when none did).
+    """
+    sign = np.array([r.sign_cutoff_hz for r in results], dtype=float)
+    position = np.array([r.position_cutoff_hz for r in results], dtype=float)
+    filtered = np.isfinite(sign)
+    left = np.array([r.left_out[OURS] for r in results if OURS in r.left_out], dtype=float)
+    some = left[left > 0.0]
+    return {
+        "sign_at_position": float(np.mean(sign[filtered] == position[filtered]))
+        if filtered.any()
+        else None,
+        "sign_cutoff_hz": sorted({float(x) for x in sign[filtered]}),
+        "case2_left_out_seeds": float(np.mean(left > 0.0)) if left.size else None,
+        "case2_left_out_median": float(np.median(some)) if some.size else None,
     }
 
 

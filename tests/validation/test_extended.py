@@ -22,6 +22,7 @@ from drivegain.identify.prepare import aligned_current
 from drivegain.identify.synth import simulate_run
 from drivegain.validation import estimators
 from drivegain.validation.cell import closed_loop_run
+from drivegain.validation.document import preparation_cells
 from drivegain.validation.estimators import (
     METHODS,
     OURS,
@@ -42,7 +43,7 @@ from drivegain.validation.scenarios import (
     Plant,
     scenario_rng,
 )
-from drivegain.validation.statistics import payload_z_stats
+from drivegain.validation.statistics import payload_z_stats, preparation_summary
 from drivegain.validation.world import World
 
 RANDOM = next(sc for sc in SCENARIOS if sc.key == "random-current-1pct")
@@ -278,3 +279,30 @@ def test_capped_scenarios_stop_at_their_cap(monkeypatch: pytest.MonkeyPatch) -> 
         "capped": [(0, "capped"), (1, "capped")],
         "free": [(s, "free") for s in range(5)],
     }
+
+
+def test_preparation_summary_counts_by_hand() -> None:
+    """The sign cut-offs and the Case 2 gate of four made-up seeds, counted by hand; and the
+    page's cells from it, from a run with exact derivatives and from one before it existed."""
+    seeds = []
+    for k, (sign, left) in enumerate(((5.0, 0.0), (40.0, 0.5), (5.0, 0.2), (10.0, 0.0))):
+        r = SeedResult(seed=k, scenario="x", sign_cutoff_hz=sign, position_cutoff_hz=5.0)
+        r.left_out[OURS] = left
+        r.left_out["other"] = 1.0  # another method's gate counts nowhere
+        seeds.append(r)
+    prep = preparation_summary(seeds)
+    assert prep == {
+        "sign_at_position": 0.5,
+        "sign_cutoff_hz": [5.0, 10.0, 40.0],
+        "case2_left_out_seeds": 0.5,
+        "case2_left_out_median": pytest.approx(0.35),
+    }
+    assert preparation_cells(prep) == [
+        "50 % of seeds (5, 10, 40 Hz)",
+        "50 % of seeds (35 % of entries, median)",
+    ]
+    exact = preparation_summary([SeedResult(seed=0, scenario="x")])
+    assert exact["sign_at_position"] is None and exact["sign_cutoff_hz"] == []
+    assert exact["case2_left_out_seeds"] is None and exact["case2_left_out_median"] is None
+    assert preparation_cells(exact) == ["exact derivatives", "–"]
+    assert preparation_cells(None) == ["–", "–"]  # results.json of an earlier tree

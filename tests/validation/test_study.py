@@ -25,7 +25,7 @@ import pytest
 
 from drivegain.errors import InputError
 from drivegain.identify.signal import FilterSettings
-from drivegain.validation.estimators import METHODS, OURS
+from drivegain.validation.estimators import METHODS, OURS, seed_designs
 from drivegain.validation.scenarios import SCENARIOS, Plant, Scenario
 from drivegain.validation.statistics import bootstrap_ratio, decimated_noise_factor, wilson
 from drivegain.validation.study import render_study, run_study
@@ -165,6 +165,28 @@ def test_what_the_comparison_must_show(study: tuple[dict, Path]) -> None:
             assert c2.mean() < 0.5 * c1.mean(), (key, which, c1, c2)
             if key.startswith(("torque", "random-torque")):
                 assert np.all(c2 < c1), (key, which, c1, c2)
+
+
+def test_the_preparation_is_that_of_the_seeds_designs(
+    study: tuple[dict, Path], world: World
+) -> None:
+    """The results' sign cut-offs are those of the designs each seed prepares (made again
+    here), and ours' Case 2 gate a share of the seeds."""
+    data, _ = study
+    sc = RUN[0]
+    used, at = set(), []
+    for seed in range(2):
+        _, designs = seed_designs(world, sc, seed)
+        f = designs[0].run.filter
+        assert f is not None
+        used.add(f.sign_cutoff)
+        at.append(f.sign_cutoff == f.cutoff_hz)
+    prep = data["monte_carlo"][sc.key]["preparation"]
+    assert prep["sign_at_position"] == pytest.approx(np.mean(at))
+    assert prep["sign_cutoff_hz"] == sorted(used)
+    for key in data["monte_carlo"]:
+        left = data["monte_carlo"][key]["preparation"]["case2_left_out_seeds"]
+        assert left in (0.0, 0.5, 1.0)  # of two seeds
 
 
 def test_decimated_noise_is_band_limited(world: World) -> None:
