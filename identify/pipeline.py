@@ -341,8 +341,14 @@ def _choose_sign(
     progress.remove_task(task)
     kept = loaded if choice.chosen == 0 else other
     note = choice.note()
-    made = None if choice.fit is None else FitMade(form, choice.fit)
-    return [replace(x, info=replace(x.info, notes=[*x.info.notes, note])) for x in kept], made
+    runs = [replace(x, info=replace(x.info, notes=[*x.info.notes, note])) for x in kept]
+    # the prepared runs themselves (not copies): the procedure checks that they are its own
+    made = (
+        None
+        if choice.fit is None
+        else FitMade(form, kept[0].prepared, kept[1].prepared, choice.fit)
+    )
+    return runs, made
 
 
 def _run_identify(req: IdentifyRequest) -> IdentifyOutcome:

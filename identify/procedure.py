@@ -71,12 +71,24 @@ class FitMade:
     """The maximum-likelihood fit of runs a and b, made before the procedure (the Coulomb
     sign's choice, :mod:`~drivegain.identify.signchoice`) on the designs of ``friction``.
 
-    The gains' estimate takes it rather than fitting the same runs again, when it is of the
-    procedure's friction form and estimator.
+    The gains' estimate takes it rather than fitting the same runs again when it is of the
+    procedure's friction form and estimator and of the problem's own runs (the same objects:
+    ``unloaded`` and ``loaded`` are the prepared runs it was made from).
     """
 
     friction: WristFriction
+    unloaded: PreparedRun
+    loaded: PreparedRun
     fit: MLFit
+
+    def serves(self, problem: Problem, friction: WristFriction, estimator: Estimator) -> bool:
+        """Whether this fit is the one the procedure would make of ``problem``."""
+        return (
+            self.friction is friction
+            and estimator is Estimator.ML
+            and self.unloaded is problem.unloaded
+            and self.loaded is problem.loaded
+        )
 
 
 @dataclass(frozen=True)
@@ -311,7 +323,7 @@ def _run_procedure(problem: Problem, options: Options, step: Step) -> ProcedureR
             made = problem.gains_fit
             reuse = (
                 made.fit
-                if made is not None and made.friction is form and options.estimator is Estimator.ML
+                if made is not None and made.serves(problem, form, options.estimator)
                 else None
             )
             try:

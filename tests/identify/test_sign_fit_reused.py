@@ -69,6 +69,28 @@ def test_a_fit_the_estimate_cannot_take_is_refused(world, noisy_run) -> None:
         estimate_gains(a, b, world.payload, apriori, fit=replace(fit, chi=fit.chi[1:]))
 
 
+def test_the_procedure_takes_a_fit_of_its_own_runs_only(world, noisy_run) -> None:
+    rng = np.random.default_rng(14)
+    u = noisy_run(0, None, rng, duration=DURATION, label="unloaded")
+    lo = noisy_run(1, world.payload, rng, duration=DURATION, label="loaded")
+    form = world.robot.wrist_friction
+    bp = world.bases[form]
+    fit = ml_fit(
+        make_design(u, bp, form, world.robot),
+        make_design(lo, bp, form, world.robot),
+        world.payload,
+        influence=True,
+    )
+    problem = procedure.Problem(world.robot, world.bases, u, lo)
+    made = procedure.FitMade(form, u, lo, fit)
+    assert made.serves(problem, form, Estimator.ML)
+    assert not made.serves(problem, form, Estimator.PAPER)
+    other = next(f for f in world.bases if f is not form)
+    assert not made.serves(problem, other, Estimator.ML)
+    # equal runs that are not the problem's own objects: not taken on trust
+    assert not made.serves(replace(problem, loaded=replace(lo)), form, Estimator.ML)
+
+
 def _report(out) -> dict:
     return json.loads((out / "report.json").read_text())
 
