@@ -353,20 +353,18 @@ def compare_with_baseline(ref: str, work: Path, quick: bool, repeats: int) -> No
     else:
         args = ["identify", "--robot", robot, "--unloaded", str(real), "--gains", "gear-ratios"]
         cases.append(("(a) real TX-40, 45 000 samples", args, True))
-    # The runs of the scaling series' 240 s point: their sign cut-off is chosen by likelihood.
-    a, b = work / "unloaded-240s-250Hz.mcap", work / "loaded-240s-250Hz.mcap"
-    if not (a.exists() and b.exists()):
-        print("writing the 2 x 240 s at 250 Hz logs (not timed)...", flush=True)
-        a, b = _write_sim_logs(work, 240.0, 250.0, seed=240)
-    args = ["identify", "--robot", robot, "--unloaded", str(a), "--loaded", str(b)]
-    cases.append(("(d) 2 x 240 s at 250 Hz, sign choice", [*args, "--payload", payload], False))
+    # (d): the scaling series' 240 s point, whose sign cut-off is chosen by likelihood
+    sizes = [("(d) 2 x 240 s at 250 Hz, sign choice", 240.0, 250.0)]
     if not quick:
-        a, b = work / "unloaded-600s-1000Hz.mcap", work / "loaded-600s-1000Hz.mcap"
+        sizes.append(("(c) 2 x 600 s at 1 kHz (1.2 M msgs)", 600.0, 1000.0))
+    for name, seconds, rate in sizes:
+        tag = f"{seconds:g}s-{rate:g}Hz"
+        a, b = work / f"unloaded-{tag}.mcap", work / f"loaded-{tag}.mcap"
         if not (a.exists() and b.exists()):
-            print("writing the 2 x 600 s at 1 kHz logs (not timed)...", flush=True)
-            a, b = _write_sim_logs(work, 600.0, 1000.0, seed=600)
+            print(f"writing the 2 x {seconds:.0f} s at {rate:g} Hz logs (not timed)...", flush=True)
+            a, b = _write_sim_logs(work, seconds, rate, seed=int(seconds))
         args = ["identify", "--robot", robot, "--unloaded", str(a), "--loaded", str(b)]
-        cases.append(("(c) 2 x 600 s at 1 kHz (1.2 M msgs)", [*args, "--payload", payload], False))
+        cases.append((name, [*args, "--payload", payload], False))
     helptext = subprocess.run(
         [*current_command("drivegain"), "identify", "--help"], capture_output=True, text=True
     ).stdout
