@@ -17,7 +17,7 @@ import numpy as np
 from drivegain.config.payload import PAYLOAD_PARAMS
 from drivegain.validation.discussion import coverage_text, findings_text
 from drivegain.validation.estimators import METHODS, OURS
-from drivegain.validation.markdown import fmt, ratio_word, sigma_word, table
+from drivegain.validation.markdown import fmt, ratio_word, scenario_table, sigma_word, table
 from drivegain.validation.mustshow import must_show_text
 from drivegain.validation.paper import paper_tables_text
 from drivegain.validation.real import real_text
@@ -276,54 +276,27 @@ def _setup_section(data: dict[str, Any], world: World) -> str:
         f"trimmed at each border: {tab['samples']['unloaded']} samples kept per run."
     )
     add("")
-    add(
-        "\n".join(
-            table(
-                ["scenario", "seeds", "noise", *PREPARATION_HEADER],
-                [
-                    [
-                        sc.key,
-                        str(data["monte_carlo"][sc.key]["seeds"]),
-                        sc.label
-                        + (
-                            " (torque noise per joint, N·m: "
-                            + ", ".join(
-                                f"{sc.current_fraction * j.rated_current * abs(g):.2g}"
-                                for j, g in zip(world.robot.joints, g_true, strict=True)
-                            )
-                            + ")"
-                            if sc.current_fraction
-                            else ""
-                        ),
-                        *preparation_cells(data["monte_carlo"][sc.key].get("preparation")),
-                    ]
-                    for sc in scen
-                ],
-            )
-        )
-    )
+    rows = [
+        [
+            sc.key,
+            str(data["monte_carlo"][sc.key]["seeds"]),
+            sc.label
+            + (
+                " (torque noise per joint, N·m: "
+                + ", ".join(
+                    f"{sc.current_fraction * j.rated_current * abs(g):.2g}"
+                    for j, g in zip(world.robot.joints, g_true, strict=True)
+                )
+                + ")"
+                if sc.current_fraction
+                else ""
+            ),
+        ]
+        for sc in scen
+    ]
+    preps = [data["monte_carlo"][sc.key].get("preparation") for sc in scen]
+    add("\n".join(scenario_table(rows, preps)))
     return "\n".join(L)
-
-
-#: The scenario table's columns on how the seeds were prepared and fitted.
-PREPARATION_HEADER = ("Coulomb sign at the position cut-off", "ours' Case 2 left entries out")
-
-
-def preparation_cells(prep: dict[str, Any] | None) -> list[str]:
-    """The scenario table's :data:`PREPARATION_HEADER` cells from a scenario's
-    ``preparation`` summary; a dash for a study run before it was recorded."""
-    if prep is None:
-        return ["–", "–"]
-    at = prep["sign_at_position"]
-    cutoffs = prep["sign_cutoff_hz"]
-    sign = "exact derivatives" if at is None else f"{100 * at:.0f} % of seeds"
-    if cutoffs:
-        sign += " (" + ", ".join(f"{hz:g}" for hz in cutoffs) + " Hz)"
-    seeds, median = prep["case2_left_out_seeds"], prep["case2_left_out_median"]
-    left = "–" if seeds is None else f"{100 * seeds:.0f} % of seeds"
-    if median is not None:
-        left += f" ({100 * median:.0f} % of entries, median)"
-    return [sign, left]
 
 
 def _methods_section() -> str:

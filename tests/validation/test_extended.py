@@ -22,7 +22,6 @@ from drivegain.identify.prepare import aligned_current
 from drivegain.identify.synth import simulate_run
 from drivegain.validation import estimators
 from drivegain.validation.cell import closed_loop_run
-from drivegain.validation.document import preparation_cells
 from drivegain.validation.estimators import (
     METHODS,
     OURS,
@@ -32,6 +31,7 @@ from drivegain.validation.estimators import (
     seed_runs,
     seed_world,
 )
+from drivegain.validation.markdown import preparation_cells
 from drivegain.validation.mustshow import scenario_checks, spread_interval
 from drivegain.validation.scenarios import (
     RANDOM_BASE_HZ,
