@@ -25,7 +25,7 @@ import pytest
 
 from drivegain.errors import InputError
 from drivegain.identify.signal import FilterSettings
-from drivegain.validation.estimators import METHODS, OURS, seed_designs
+from drivegain.validation.estimators import METHODS, OURS, PAPER, seed_designs
 from drivegain.validation.scenarios import SCENARIOS, Plant, Scenario
 from drivegain.validation.statistics import bootstrap_ratio, decimated_noise_factor, wilson
 from drivegain.validation.study import render_study, run_study
@@ -165,6 +165,22 @@ def test_what_the_comparison_must_show(study: tuple[dict, Path]) -> None:
             assert c2.mean() < 0.5 * c1.mean(), (key, which, c1, c2)
             if key.startswith(("torque", "random-torque")):
                 assert np.all(c2 < c1), (key, which, c1, c2)
+
+
+def test_per_joint_ls_is_paired_with_ours_given_the_same_payload(
+    study: tuple[dict, Path],
+) -> None:
+    """Per joint, the point ratio of per-joint LS's paired interval against ours given the
+    payload's CAD is the ratio of the two RMS errors the summary reports, inside its interval."""
+    data, _ = study
+    for key, entry in data["monte_carlo"].items():
+        st = entry["methods"]
+        pj, cad = st["per_joint"], st["ours_cad"]
+        assert len(pj["ratio_to_counterpart_joint"]) == 6, key
+        for j, (r, lo, hi) in enumerate(pj["ratio_to_counterpart_joint"]):
+            assert r == pytest.approx(pj["rmse_pct"][j] / cad["rmse_pct"][j], rel=1e-9)
+            assert lo <= r <= hi
+        assert "ratio_to_counterpart_joint" not in st[PAPER]
 
 
 def test_the_preparation_is_that_of_the_seeds_designs(
