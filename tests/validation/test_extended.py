@@ -277,7 +277,11 @@ def test_wins_beyond_sampling_are_named_from_the_paired_intervals() -> None:
     # against ours_cad, although its interval against ours itself holds 1.
     methods[PAPER]["rmse_pct"] = [0.2, 0.099, 0.2, 0.09, 0.2, 0.2]
     methods[PAPER]["ratio_to_ours_joint"] = [
-        *tie[:1], [0.99, 0.97, 1.01], *tie[:1], [0.9, 0.85, 0.95], *tie[:2]
+        *tie[:1],
+        [0.99, 0.97, 1.01],
+        *tie[:1],
+        [0.9, 0.85, 0.95],
+        *tie[:2],
     ]
     methods["per_joint"]["rmse_pct"] = [0.2] * 5 + [0.08]
     methods["per_joint"]["ratio_to_counterpart_joint"] = [*tie[:5], [0.8, 0.7, 0.9]]
