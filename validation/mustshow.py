@@ -3,13 +3,15 @@
 The targets are about our estimator (:data:`~drivegain.validation.estimators.OURS`): an honest
 ±2σ (coverage and spread of z for the gains and the payload parameters), no bias (mean z), no
 search stuck at an edge, and the smallest gain error where the issue asks for it (a rival that
-needs more of the payload than its mass against ours given the same, :data:`SAME_INFORMATION`).
+needs more of the payload than its mass against ours given the same,
+:data:`~drivegain.validation.estimators.SAME_INFORMATION`).
 Values are point estimates over the seeds run; the Wilson interval of each coverage is beside
 it, and a spread of z names the joints (or counts the parameters) whose 95 % interval lies
 wholly outside the target: from N seeds a spread estimate is uncertain by about ±1.96/√(2(N − 1))
 (±25 % at 30 seeds, ±14 % at 100), so a verdict on the point estimate alone cannot tell a
 wrong σ from sampling error. A rival's win on a joint is likewise named beyond Monte Carlo
-uncertainty when its paired bootstrap interval (``statistics.bootstrap_ratio``) says so.
+uncertainty when its paired bootstrap interval
+(:func:`~drivegain.validation.statistics.bootstrap_ratio`) says so.
 """
 
 from __future__ import annotations
