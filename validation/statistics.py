@@ -225,6 +225,12 @@ def payload_coverage(
     return np.asarray(np.mean(np.abs(z) <= 2.0, axis=0))
 
 
+def joint_ratios(err: np.ndarray, ref: np.ndarray, rng: np.random.Generator) -> list[list[float]]:
+    """:func:`bootstrap_ratio` of each joint (column) alone, in joint order: per joint, the
+    ratio and its 95 % interval."""
+    return [list(bootstrap_ratio(err[:, [j]], ref[:, [j]], rng)) for j in range(err.shape[1])]
+
+
 def scenario_summary(
     results: Sequence[SeedResult], world: World, factor: float = 1.0
 ) -> dict[str, Any]:
@@ -240,17 +246,13 @@ def scenario_summary(
         if e.shape != ref.shape:
             continue
         stats[m.key]["ratio_to_ours"] = list(bootstrap_ratio(e, ref, rng))
-        stats[m.key]["ratio_to_ours_joint"] = [
-            list(bootstrap_ratio(e[:, [j]], ref[:, [j]], rng)) for j in range(g.size)
-        ]
+        stats[m.key]["ratio_to_ours_joint"] = joint_ratios(e, ref, rng)
     # A stream of its own, so that the ratios to ours stay those of earlier runs.
     rng = np.random.default_rng((ROOT_SEED, 8))
     for rival, mine in SAME_INFORMATION.items():
-        e, ref = rel_errors(results, rival, g), rel_errors(results, mine, g)
-        if e.size and e.shape == ref.shape:
-            stats[rival]["ratio_to_counterpart_joint"] = [
-                list(bootstrap_ratio(e[:, [j]], ref[:, [j]], rng)) for j in range(g.size)
-            ]
+        e, e_mine = rel_errors(results, rival, g), rel_errors(results, mine, g)
+        if e.size and e.shape == e_mine.shape:
+            stats[rival]["ratio_to_counterpart_joint"] = joint_ratios(e, e_mine, rng)
     case = {
         "case1": {
             "payload_b_rms_pct": payload_rms(results, "case1", world.payload.values, "b").tolist(),
