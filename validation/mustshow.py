@@ -247,8 +247,9 @@ def must_show_text(checks: Sequence[dict[str, Any]]) -> str:
         "are σ shown wrong; edge: seeds whose searched "
         "weight or α ended at an end of its range; RMS: relative gain error per joint against "
         "the other methods, the verdict on the point estimates; the joints where a rival's "
-        "paired 95 % bootstrap interval of its RMS over ours lies wholly below 1 are named as "
-        "well (beyond Monte Carlo uncertainty), the other wins being within it.",
+        "paired 95 % bootstrap interval of its RMS over ours (or over ours given the same "
+        "payload information) lies wholly below 1 are named as well (beyond Monte Carlo "
+        "uncertainty), the other wins being within it.",
         "",
     ]
     rows = [[c["scenario"], c["target"], c["value"], _word(c["passed"])] for c in checks]
