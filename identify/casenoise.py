@@ -37,7 +37,7 @@ import numpy as np
 from drivegain.errors import UsageError
 from drivegain.identify import forked
 from drivegain.identify.design import Design
-from drivegain.identify.mlmodel import RunArrays, Whitening, reversal_of
+from drivegain.identify.mlmodel import RunArrays, Whitening, chunks, reversal_of
 
 
 @dataclass(frozen=True)
@@ -270,7 +270,15 @@ def _share_coefficients(noise: CaseNoise, ra: RunArrays) -> np.ndarray:
 
 
 def _gain_share(noise: CaseNoise, ra: RunArrays, coefs: np.ndarray) -> np.ndarray:
-    """``V_k = J̃_k G`` of the samples of ``ra``, (rows, n, n), without the whole Jacobian.
+    """``V_k = J̃_k G`` of the samples of ``ra``, (rows, n, n), without the whole Jacobian."""
+    return _share_and_currents(noise, ra, coefs)[0]
+
+
+def _share_and_currents(
+    noise: CaseNoise, ra: RunArrays, coefs: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """``V_k = J̃_k G`` of the samples of ``ra``, (rows, n, n), and the model currents v̂_k
+    (A, (rows, n)).
 
     ``∂v̂_k/∂θ · G = M (W_k G_χ + W_u,k G_u) − diag(v̂_k/g) G_g`` with ``M = diag(1/g) K⁻¹``:
     the regressor's series times ``coefs`` (:func:`_share_coefficients`) give ``W G`` and the
@@ -283,4 +291,38 @@ def _gain_share(noise: CaseNoise, ra: RunArrays, coefs: np.ndarray) -> np.ndarra
     v_hat = both[:, :, n] @ m.T
     share = np.matmul(m, both[:, :, :n])
     share -= (v_hat / g[None, :])[:, :, None] * noise.gain_influence[nb : nb + n][None, :, :]
-    return noise.whitening.apply(share, ra.reversal)
+    return noise.whitening.apply(share, ra.reversal), v_hat
+
+
+def gain_scores(noise: CaseNoise, d: Design) -> np.ndarray | None:
+    """Each sample's share of the gains' error, as its own residuals show it.
+
+    To first order ĝ − g = Σ_k V_kᵀ ẽ_k over the samples of the gains' runs (the module
+    docstring); with the fit's whitened residuals in place of the errors, φ_k = V_kᵀ ẽ_k. A
+    fit whose covariance reads its own residuals (Newey-West) gets its correlation with the
+    gains' error from the lagged products of its scores with these, as it gets its own
+    variance from its scores alone (:func:`~drivegain.identify.cases.case_covariance`).
+
+    Parameters
+    ----------
+    noise
+        The gains' error model.
+    d
+        A design of one of the runs (any row weights: the gains used every entry).
+
+    Returns
+    -------
+    numpy.ndarray or None
+        φ, N·m/A, (N, n), per sample and gain; None when the gains did not use the run.
+    """
+    ra = noise.run_of(d)
+    if ra is None:
+        return None
+    coefs = _share_coefficients(noise, ra)
+    out = np.empty((ra.samples, noise.kt_inv.shape[0]))
+    for sl in chunks(ra.samples):
+        sub = ra.rows(sl)
+        share, v_hat = _share_and_currents(noise, sub, coefs)
+        resid = noise.whitening.apply(sub.v - v_hat, sub.reversal)
+        out[sl] = np.matmul(resid[:, None, :], share)[:, 0, :]
+    return out

@@ -19,7 +19,7 @@ import numpy as np
 
 from drivegain.config.payload import PAYLOAD_PARAMS
 from drivegain.errors import UsageError
-from drivegain.identify.casenoise import CaseNoise, model_sums
+from drivegain.identify.casenoise import CaseNoise, gain_scores, model_sums
 from drivegain.identify.design import (
     Design,
     joint_residual_sq,
@@ -54,8 +54,9 @@ class CaseCovariance(StrEnum):
         "with the gains' covariance and their correlation with this fit"
     )
     NEWEY_WEST_KEPT = (
-        "HAC (Newey-West, Bartlett kernel) with the gains' covariance, on the entries away "
-        "from the reversals the gains' error model finds misfit"
+        "HAC (Newey-West, Bartlett kernel) with the gains' covariance and their lagged "
+        "correlation with this fit's residuals, on the entries away from the reversals the "
+        "gains' error model finds misfit"
     )
 
 
@@ -247,7 +248,8 @@ def fit_case(
     Where the gains' error model finds a drive's entries near its reversals misfit
     (:func:`misfit_drives`: it sticks there, or its Coulomb sign is uncertain), the entries
     near those reversals (:func:`near_reversals`) are left out of the fit and its standard
-    deviations, which are then Newey-West's with the gains' covariance: that torque is a
+    deviations, which are then Newey-West's with the gains' covariance and their correlation
+    with this fit's residuals (:func:`~.casenoise.gain_scores`): that torque is a
     misfit, not noise, and the fit would borrow the payload's inertias to explain it
     (docs/model.md, "Case 2 without the misfit reversals"). The error norms and R² count
     every entry.
@@ -284,12 +286,15 @@ def fit_case(
     if factors is None:
         factors = [d.factors() for d in designs]
     every, every_factors = list(designs), list(factors)
+    scores = None
     if noise is not None and leave_out_misfit:
         drives = misfit_drives(noise)
         drops = [near_reversals(d, drives=drives) for d in designs]
         if any(x.any() for x in drops):
             designs = [without_rows(d, x) for d, x in zip(designs, drops, strict=True)]
             factors = [d.factors() for d in designs]
+            if covariance:
+                scores = [gain_scores(noise, d) for d in designs]
             noise = None
     slots = _payload_slots(designs)
     n_slots = sum(s is not None for s in slots)
@@ -308,7 +313,7 @@ def fit_case(
     nb = designs[0].nb
     if covariance:
         cov, lag = case_covariance(
-            designs, transforms, sigma, res.x, gain_cov, factors, noise=noise
+            designs, transforms, sigma, res.x, gain_cov, factors, noise=noise, gain_scores=scores
         )
         std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     else:
@@ -369,6 +374,7 @@ def case_covariance(
     factors: Sequence[np.ndarray] | None = None,
     *,
     noise: CaseNoise | None = None,
+    gain_scores: Sequence[np.ndarray | None] | None = None,
 ) -> tuple[np.ndarray, int]:
     """HAC covariance of an IDIM-WLS solution, plus the gains' share when they are uncertain.
 
@@ -377,8 +383,11 @@ def case_covariance(
     (:mod:`~drivegain.identify.hac`), lag from the weighted residuals, each σ raised where the
     scores summed by phase of a periodic excitation say so
     (:func:`~drivegain.identify.hac.with_repeats`); the gains enter c
-    linearly, so ∂x̂/∂g = H⁻¹Aᵀ ∂c/∂g and their covariance adds J_g Cov(g) J_gᵀ (the gains
-    treated as independent of this fit's noise).
+    linearly, so ∂x̂/∂g = H⁻¹Aᵀ ∂c/∂g and their covariance adds J_g Cov(g) J_gᵀ. The gains'
+    error and this fit's come from the same samples: with ``gain_scores`` (each sample's share
+    φ_k of the gains' error) their covariance is the Newey-West sum of the lagged products
+    ψ_k φ_k'ᵀ, carried through J_g (x̂ − x ≈ −H⁻¹ Σ ψ_k, so it enters with a minus sign);
+    without, the gains are treated as independent of this fit's noise.
 
     Parameters
     ----------
@@ -391,6 +400,9 @@ def case_covariance(
         The error model of the estimator that gave the gains (:mod:`.casenoise`): the meat is
         then that model's rather than Newey-West's, and the gains' covariance with this fit's
         noise is added (with ``gain_cov``, which it needs).
+    gain_scores
+        Per design, φ_k (N·m/A, (N, n)) of :func:`~drivegain.identify.casenoise.gain_scores`,
+        or None for a run the gains did not use; read with ``gain_cov`` and without ``noise``.
 
     Returns
     -------
@@ -399,6 +411,8 @@ def case_covariance(
     """
     if noise is not None and gain_cov is None:
         raise UsageError("a noise model comes with the gains' covariance (gain_cov)")
+    if gain_scores is not None and (gain_cov is None or noise is not None):
+        raise UsageError("the gains' scores come with their covariance and without a noise model")
     p = x.size
     n = designs[0].n
     if factors is None:
@@ -419,23 +433,45 @@ def case_covariance(
     resid = [d.dot(t @ x_aug) / sigma[None, :] for d, t in zip(designs, transforms, strict=True)]
     lag = bartlett_lag(resid)
     meat = LongRunSum(p, lag)
+    # with the gains' scores: one sum of [ψ_k, φ_k], whose off-diagonal block is their
+    # lagged cross products (its ψ block is the same sum as ``meat``'s)
+    joint = None if gain_scores is None else LongRunSum(p + n, lag)
     by_phase: list[np.ndarray | None] = []
-    for d, t, e in zip(designs, transforms, resid, strict=True):
+    for i, (d, t, e) in enumerate(zip(designs, transforms, resid, strict=True)):
         w = e / sigma[None, :]
         phases = run_phases(d)
         folded = None if phases is None else np.zeros((phases[1], p))
+        phi = None if gain_scores is None else gain_scores[i]
         for sl in _row_blocks(d.rows):
             psi = d.subset(sl).tdot(w[sl]) @ t[:, :p]
-            if noise is None:
+            if joint is not None:
+                both = np.zeros((psi.shape[0], p + n))
+                both[:, :p] = psi
+                if phi is not None:
+                    both[:, p:] = phi[sl]
+                joint.add(both)
+            elif noise is None:
                 meat.add(psi)
             if folded is not None and phases is not None:
                 folded += cluster_sums(psi, phases[0][sl], phases[1])
         meat.end_run()
+        if joint is not None:
+            joint.end_run()
         by_phase.append(folded)
     rows = sum(d.entries(j) for d in designs for j in range(n))
     h_inv = np.linalg.pinv(bread, hermitian=True)
     s_uv = None
-    if noise is None:
+    if joint is not None and gain_cov is not None:
+        both_meat = joint.meat()
+        cov = sandwich(bread, both_meat[:p, :p], rows, p)
+        # Σ Uᵀγ V in the model's terms is −Σ ψ φᵀ here (ψ_k ≈ −a_k ε_k). The gains' own
+        # covariance is not Newey-West's of φ (the gains' fit has a model of its own), so φ is
+        # mapped by T with T S_φφ Tᵀ = Cov(g): the joint covariance is then a congruence of
+        # Newey-West's and stays positive semidefinite. The fit's share takes the small-sample
+        # factor of its own meat.
+        t = matched_root(np.asarray(gain_cov, float), both_meat[p:, p:])
+        s_uv = -np.sqrt(rows / (rows - p)) * both_meat[:p, p:] @ t.T
+    elif noise is None:
         cov = sandwich(bread, meat.meat(), rows, p)
     else:
         blocks = [_row_blocks(d.rows) for d in designs]
@@ -444,16 +480,42 @@ def case_covariance(
         cov = 0.5 * (cov + cov.T)
     # errors that repeat every period of the excitation, as for the ML gains
     summed = gathered(by_phase, same_phases(designs))
+    raised = None
     if summed is not None:
-        cov = with_repeats(cov, bread, summed, lag, rows)[0]
+        cov, raised = with_repeats(cov, bread, summed, lag, rows)
     if gain_cov is not None:
         j_g = h_inv @ cross
         cov = cov + j_g @ np.asarray(gain_cov, float) @ j_g.T
         if s_uv is not None:
             # Cov(fit's error, gains' error) = H⁻¹ Σ Uᵀγ V, carried through J_g
             both = h_inv @ s_uv @ j_g.T
+            if joint is not None and raised is not None:
+                both = raised[:, None] * both  # the fit's error as the repeats raised it
             cov = cov + both + both.T
     return cov, (lag if noise is None else noise.lag)
+
+
+def matched_root(target: np.ndarray, source: np.ndarray) -> np.ndarray:
+    """T = target^½ source^(−½) (symmetric roots), so that T · source · Tᵀ = target.
+
+    Maps a series whose covariance is ``source`` onto one with the covariance ``target``;
+    directions in which ``source`` vanishes (below 1e-12 of its largest eigenvalue) map to
+    zero.
+
+    Parameters
+    ----------
+    target, source
+        Symmetric positive semidefinite, (n, n), of one unit.
+    """
+
+    def roots(m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        w, v = np.linalg.eigh(0.5 * (m + m.T))
+        w = np.clip(w, 0.0, None)
+        keep = w > 1e-12 * max(float(w.max(initial=0.0)), np.finfo(float).tiny)
+        inv = np.where(keep, 1.0 / np.sqrt(np.where(keep, w, 1.0)), 0.0)
+        return (v * np.sqrt(w)) @ v.T, (v * inv) @ v.T
+
+    return np.asarray(roots(target)[0] @ roots(source)[1])
 
 
 #: Samples per row block of :func:`case_covariance`'s scores (bounds the memory of long runs).

@@ -14,9 +14,11 @@ import numpy as np
 import pytest
 
 from drivegain.errors import UsageError
+from drivegain.identify.casenoise import gain_scores
 from drivegain.identify.cases import (
     MISFIT_KAPPA,
     CaseCovariance,
+    case_covariance,
     fit_case,
     near_reversals,
     predictions,
@@ -148,8 +150,10 @@ def test_case2_leaves_out_the_reversals_the_error_model_finds_misfit(world, pair
     the entries near those drives' reversals are left out and σ is Newey-West's."""
     a, b = pair
     res = estimate_gains(a, b, world.payload, world.robot.apriori_gains, estimator=Estimator.ML)
-    g = slice(res.ml.nb, res.ml.nb + a.n)
-    cov = res.covariance[g, g]
+    # the covariance the estimate reports leaves out the reversal Coulomb coefficients that
+    # the fit's θ holds before the gains: its gains' block ends at the payload's columns
+    nb = res.covariance.shape[0] - a.n - res.payload_unknown.size
+    cov = res.covariance[nb : nb + a.n, nb : nb + a.n]
     names = list(world.bases[world.robot.wrist_friction].names)
 
     def with_kappa(kappa: np.ndarray):
@@ -173,11 +177,22 @@ def test_case2_leaves_out_the_reversals_the_error_model_finds_misfit(world, pair
     fit = case2(with_kappa(kappa))
     assert fit.covariance == CaseCovariance.NEWEY_WEST_KEPT
     assert fit.left_out == sum(int(x.sum()) for x in drops)
-    # the fit and σ of the kept entries, Newey-West with the gains taken as independent
+    # the fit of the kept entries, its σ Newey-West's with the gains' covariance and their
+    # lagged correlation with this fit's residuals (gain_scores of the gains' every entry)
     left = [without_rows(d, x) for d, x in zip((a, b), drops, strict=True)]
     ref = fit_case("case2", left, res.gains, names, gain_cov=cov)
     np.testing.assert_allclose(fit.payloads[0].values, ref.payloads[0].values, rtol=1e-12)
-    np.testing.assert_allclose(fit.payloads[0].std, ref.payloads[0].std, rtol=1e-12)
+    noise = with_kappa(kappa)
+    scores = [gain_scores(noise, d) for d in left]
+    transforms = [ls_transform(left[0], None, 1, res.gains), ls_transform(left[1], 0, 1, res.gains)]
+    joint, _ = case_covariance(
+        left, transforms, ref.sigma_joint, ref.wls.x, cov, gain_scores=scores
+    )
+    np.testing.assert_allclose(fit.payloads[0].std, np.sqrt(np.diag(joint)[a.nb :]), rtol=1e-12)
+    # the correlation is not nothing: the known mass, which the gains reproduce, loses most
+    # of the σ independence gives it
+    known = world.payload.known_mask()
+    assert np.all(fit.payloads[0].std[known] < 0.5 * ref.payloads[0].std[known])
     assert fit.rows == ref.rows < every.rows
     # the error norms count every entry, computed here from the torques themselves
     measured, computed = zip(
