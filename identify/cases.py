@@ -386,8 +386,9 @@ def case_covariance(
     linearly, so ∂x̂/∂g = H⁻¹Aᵀ ∂c/∂g and their covariance adds J_g Cov(g) J_gᵀ. The gains'
     error and this fit's come from the same samples: with ``gain_scores`` (each sample's share
     φ_k of the gains' error) their covariance is the Newey-West sum of the lagged products
-    ψ_k φ_k'ᵀ, carried through J_g (x̂ − x ≈ −H⁻¹ Σ ψ_k, so it enters with a minus sign);
-    without, the gains are treated as independent of this fit's noise.
+    ψ_k φ_k'ᵀ, carried through J_g (x̂ − x ≈ −H⁻¹ Σ ψ_k, so it enters with a minus sign),
+    with φ mapped by :func:`matched_root` onto the gains' own covariance (so the whole stays
+    positive semidefinite); without, the gains are treated as independent of this fit's noise.
 
     Parameters
     ----------
@@ -415,6 +416,13 @@ def case_covariance(
         raise UsageError("the gains' scores come with their covariance and without a noise model")
     p = x.size
     n = designs[0].n
+    if gain_scores is not None:
+        got = [None if f is None else np.shape(f) for f in gain_scores]
+        want = [
+            None if f is None else (d.rows, n) for d, f in zip(designs, gain_scores, strict=False)
+        ]
+        if len(got) != len(designs) or got != want:
+            raise UsageError(f"the gains' scores must be (rows, {n}) per design, got {got}")
     if factors is None:
         factors = [d.factors() for d in designs]
     x_aug = np.append(x, -1.0)
@@ -469,8 +477,8 @@ def case_covariance(
         # mapped by T with T S_φφ Tᵀ = Cov(g): the joint covariance is then a congruence of
         # Newey-West's and stays positive semidefinite. The fit's share takes the small-sample
         # factor of its own meat.
-        t = matched_root(np.asarray(gain_cov, float), both_meat[p:, p:])
-        s_uv = -np.sqrt(rows / (rows - p)) * both_meat[:p, p:] @ t.T
+        to_gains = matched_root(np.asarray(gain_cov, float), both_meat[p:, p:])
+        s_uv = -np.sqrt(rows / (rows - p)) * both_meat[:p, p:] @ to_gains.T
     elif noise is None:
         cov = sandwich(bread, meat.meat(), rows, p)
     else:

@@ -259,6 +259,9 @@ def test_newey_west_with_the_gains_scores_finds_the_models_correlation(world, no
     assert np.all((ratio > 0.85) & (ratio < 1.15)), ratio
     with pytest.raises(UsageError, match="scores"):
         case_covariance_of(model, [a, b], None, gain_scores=scores)
+    for wrong in (scores[:1], [scores[0], scores[1][:-1]]):
+        with pytest.raises(UsageError, match="per design"):
+            case_covariance_of(model, [a, b], cov_g, gain_scores=wrong)
     # Gains far more certain than their scores say (a covariance from another model): the
     # correlation is taken at that size, and the covariance stays positive semidefinite.
     for factor in (1e-6, 1e3):
