@@ -29,7 +29,14 @@ from drivegain.identify.design import (
     stacked_factor,
 )
 from drivegain.identify.estimate import LSResult, cluster_sums, ls_from_factor
-from drivegain.identify.hac import LongRunSum, bartlett_lag, gathered, sandwich, with_repeats
+from drivegain.identify.hac import (
+    LongRunSum,
+    bartlett_lag,
+    gathered,
+    matched_root,
+    sandwich,
+    with_repeats,
+)
 from drivegain.identify.weighting import joint_sigma
 
 
@@ -383,12 +390,10 @@ def case_covariance(
     (:mod:`~drivegain.identify.hac`), lag from the weighted residuals, each σ raised where the
     scores summed by phase of a periodic excitation say so
     (:func:`~drivegain.identify.hac.with_repeats`); the gains enter c
-    linearly, so ∂x̂/∂g = H⁻¹Aᵀ ∂c/∂g and their covariance adds J_g Cov(g) J_gᵀ. The gains'
-    error and this fit's come from the same samples: with ``gain_scores`` (each sample's share
-    φ_k of the gains' error) their covariance is the Newey-West sum of the lagged products
-    ψ_k φ_k'ᵀ, carried through J_g (x̂ − x ≈ −H⁻¹ Σ ψ_k, so it enters with a minus sign),
-    with φ mapped by :func:`matched_root` onto the gains' own covariance (so the whole stays
-    positive semidefinite); without, the gains are treated as independent of this fit's noise.
+    linearly, so ∂x̂/∂g = H⁻¹Aᵀ ∂c/∂g and their covariance adds J_g Cov(g) J_gᵀ. With
+    ``gain_scores`` (each sample's share φ_k of the gains' error) their correlation with this
+    fit is the Newey-West sum of the lagged products ψ_k φ_k'ᵀ, φ mapped onto the gains' own
+    covariance (:func:`~.hac.matched_root`); without, the gains are taken as independent.
 
     Parameters
     ----------
@@ -441,8 +446,7 @@ def case_covariance(
     resid = [d.dot(t @ x_aug) / sigma[None, :] for d, t in zip(designs, transforms, strict=True)]
     lag = bartlett_lag(resid)
     meat = LongRunSum(p, lag)
-    # with the gains' scores: one sum of [ψ_k, φ_k], whose off-diagonal block is their
-    # lagged cross products (its ψ block is the same sum as ``meat``'s)
+    # with the gains' scores: one sum of [ψ_k, φ_k] (its ψ block is ``meat``'s)
     joint = None if gain_scores is None else LongRunSum(p + n, lag)
     by_phase: list[np.ndarray | None] = []
     for i, (d, t, e) in enumerate(zip(designs, transforms, resid, strict=True)):
@@ -472,11 +476,8 @@ def case_covariance(
     if joint is not None and gain_cov is not None:
         both_meat = joint.meat()
         cov = sandwich(bread, both_meat[:p, :p], rows, p)
-        # Σ Uᵀγ V in the model's terms is −Σ ψ φᵀ here (ψ_k ≈ −a_k ε_k). The gains' own
-        # covariance is not Newey-West's of φ (the gains' fit has a model of its own), so φ is
-        # mapped by T with T S_φφ Tᵀ = Cov(g): the joint covariance is then a congruence of
-        # Newey-West's and stays positive semidefinite. The fit's share takes the small-sample
-        # factor of its own meat.
+        # Σ Uᵀγ V is −Σ ψ φᵀ here (ψ_k ≈ −a_k ε_k); φ mapped by T, T S_φφ Tᵀ = Cov(g), keeps
+        # the whole a congruence of Newey-West's (positive semidefinite; docs/model.md)
         to_gains = matched_root(np.asarray(gain_cov, float), both_meat[p:, p:])
         s_uv = -np.sqrt(rows / (rows - p)) * both_meat[:p, p:] @ to_gains.T
     elif noise is None:
@@ -501,29 +502,6 @@ def case_covariance(
                 both = raised[:, None] * both  # the fit's error as the repeats raised it
             cov = cov + both + both.T
     return cov, (lag if noise is None else noise.lag)
-
-
-def matched_root(target: np.ndarray, source: np.ndarray) -> np.ndarray:
-    """T = target^½ source^(−½) (symmetric roots), so that T · source · Tᵀ = target.
-
-    Maps a series whose covariance is ``source`` onto one with the covariance ``target``;
-    directions in which ``source`` vanishes (below 1e-12 of its largest eigenvalue) map to
-    zero.
-
-    Parameters
-    ----------
-    target, source
-        Symmetric positive semidefinite, (n, n), of one unit.
-    """
-
-    def roots(m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        w, v = np.linalg.eigh(0.5 * (m + m.T))
-        w = np.clip(w, 0.0, None)
-        keep = w > 1e-12 * max(float(w.max(initial=0.0)), np.finfo(float).tiny)
-        inv = np.where(keep, 1.0 / np.sqrt(np.where(keep, w, 1.0)), 0.0)
-        return (v * np.sqrt(w)) @ v.T, (v * inv) @ v.T
-
-    return np.asarray(roots(target)[0] @ roots(source)[1])
 
 
 #: Samples per row block of :func:`case_covariance`'s scores (bounds the memory of long runs).

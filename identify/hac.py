@@ -248,6 +248,29 @@ def sandwich(bread: np.ndarray, meat: np.ndarray, rows: int, params: int) -> np.
     return np.asarray(0.5 * (cov + cov.T))
 
 
+def matched_root(target: np.ndarray, source: np.ndarray) -> np.ndarray:
+    """T = target^½ source^(−½) (symmetric roots), so that T · source · Tᵀ = target.
+
+    Maps a series whose covariance is ``source`` onto one with the covariance ``target``;
+    directions in which ``source`` vanishes (below 1e-12 of its largest eigenvalue) map to
+    zero.
+
+    Parameters
+    ----------
+    target, source
+        Symmetric positive semidefinite, (n, n), of one unit.
+    """
+
+    def roots(m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        w, v = np.linalg.eigh(0.5 * (m + m.T))
+        w = np.clip(w, 0.0, None)
+        keep = w > 1e-12 * max(float(w.max(initial=0.0)), np.finfo(float).tiny)
+        inv = np.where(keep, 1.0 / np.sqrt(np.where(keep, w, 1.0)), 0.0)
+        return (v * np.sqrt(w)) @ v.T, (v * inv) @ v.T
+
+    return np.asarray(roots(target)[0] @ roots(source)[1])
+
+
 def gathered(folded: Sequence[np.ndarray | None], together: bool) -> list[np.ndarray] | None:
     """The phase sums :func:`with_repeats` takes: None unless every run has them; with
     ``together`` (runs of one excitation whose phases are measured from its start) added into

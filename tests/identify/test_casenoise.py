@@ -21,12 +21,12 @@ from drivegain.identify.cases import (
     CaseCovariance,
     case_covariance,
     fit_case,
-    matched_root,
     near_reversals,
     without_rows,
 )
 from drivegain.identify.design import ls_transform, make_design
 from drivegain.identify.gains import Estimator, estimate_gains
+from drivegain.identify.hac import matched_root
 from drivegain.identify.mlmodel import Whitening, reversal_of
 
 RATE = 250.0
