@@ -445,9 +445,9 @@ def case_covariance(
     # (no D_j is built) and their long-run sum with that lag.
     resid = [d.dot(t @ x_aug) / sigma[None, :] for d, t in zip(designs, transforms, strict=True)]
     lag = bartlett_lag(resid)
-    meat = LongRunSum(p, lag)
-    # with the gains' scores: one sum of [ψ_k, φ_k] (its ψ block is ``meat``'s)
-    joint = None if gain_scores is None else LongRunSum(p + n, lag)
+    # with the gains' scores one sum of [ψ_k, φ_k]: its ψ block is the fit's meat
+    width = p if gain_scores is None else p + n
+    meat = LongRunSum(width, lag)
     by_phase: list[np.ndarray | None] = []
     for i, (d, t, e) in enumerate(zip(designs, transforms, resid, strict=True)):
         w = e / sigma[None, :]
@@ -456,25 +456,23 @@ def case_covariance(
         phi = None if gain_scores is None else gain_scores[i]
         for sl in _row_blocks(d.rows):
             psi = d.subset(sl).tdot(w[sl]) @ t[:, :p]
-            if joint is not None:
-                both = np.zeros((psi.shape[0], p + n))
-                both[:, :p] = psi
-                if phi is not None:
-                    both[:, p:] = phi[sl]
-                joint.add(both)
-            elif noise is None:
+            if noise is None and width == p:
                 meat.add(psi)
+            elif noise is None:
+                block = np.zeros((psi.shape[0], width))
+                block[:, :p] = psi
+                if phi is not None:
+                    block[:, p:] = phi[sl]
+                meat.add(block)
             if folded is not None and phases is not None:
                 folded += cluster_sums(psi, phases[0][sl], phases[1])
         meat.end_run()
-        if joint is not None:
-            joint.end_run()
         by_phase.append(folded)
     rows = sum(d.entries(j) for d in designs for j in range(n))
     h_inv = np.linalg.pinv(bread, hermitian=True)
     s_uv = None
-    if joint is not None and gain_cov is not None:
-        both_meat = joint.meat()
+    if gain_scores is not None and gain_cov is not None:
+        both_meat = meat.meat()
         cov = sandwich(bread, both_meat[:p, :p], rows, p)
         # Σ Uᵀγ V is −Σ ψ φᵀ here (ψ_k ≈ −a_k ε_k); φ mapped by T, T S_φφ Tᵀ = Cov(g), keeps
         # the whole a congruence of Newey-West's (positive semidefinite; docs/model.md)
@@ -498,7 +496,7 @@ def case_covariance(
         if s_uv is not None:
             # Cov(fit's error, gains' error) = H⁻¹ Σ Uᵀγ V, carried through J_g
             both = h_inv @ s_uv @ j_g.T
-            if joint is not None and raised is not None:
+            if gain_scores is not None and raised is not None:
                 both = raised[:, None] * both  # the fit's error as the repeats raised it
             cov = cov + both + both.T
     return cov, (lag if noise is None else noise.lag)
