@@ -17,7 +17,7 @@ and on variants of its plant that each remove one suspect:
     identification sees that robot too, as a user of such a robot would).
 
 Each payload is also fitted with the entries near reversals left out
-(:func:`drivegain.identify.cases.near_reversals`), where a stuck drive's torque is the
+(:func:`drivegain.identify.leaveout.near_reversals`), where a stuck drive's torque is the
 model's worst: z over that fit's own σ̂, and its errors over the σ̂ of the fit on every entry.
 
 Printed per variant, for each payload parameter: the mean and the standard deviation of z over
@@ -25,7 +25,7 @@ the seeds, the pooled ±2σ coverage, and the gains' mean z. A cause shows as a 
 goes to about zero when it is removed (its standard error is 1/√seeds).
 
 Case 2 as ``drivegain identify`` now makes it (the entries near the reversals of the drives
-whose κ̂ marks them misfit left out by itself, ``cases.misfit_drives``) is printed too, with the
+whose κ̂ marks them misfit left out by itself, ``leaveout.misfit_drives``) is printed too, with the
 gains' κ̂ per drive.
 
 Usage: python benchmarks/study_payload_bias.py [--seeds 20] [--workers 2] [--noise-free]
@@ -101,9 +101,10 @@ class SeedZ:
 def _one(task: tuple[str, int, bool, str]) -> SeedZ:
     """z of the payloads and gains of one seed of a closed-loop scenario on a variant."""
     from drivegain.identify.blas import limited_blas_threads
-    from drivegain.identify.cases import PayloadEstimate, fit_case, near_reversals, without_rows
+    from drivegain.identify.cases import PayloadEstimate, fit_case
     from drivegain.identify.compare import ours_gains
     from drivegain.identify.design import Design
+    from drivegain.identify.leaveout import near_reversals, without_rows
     from drivegain.validation.estimators import seed_designs
     from drivegain.validation.scenarios import SCENARIOS
 
@@ -129,7 +130,7 @@ def _one(task: tuple[str, int, bool, str]) -> SeedZ:
         for loaded, truth in ((b, w.payload.values), (c, w.validation.values)):
             pair = [a, loaded]
             # both under the gains' error model, as Case 2 was before it left out the
-            # entries near the reversals of misfit drives by itself (cases.misfit_drives)
+            # entries near the reversals of misfit drives by itself (leaveout.misfit_drives)
             f = case2(pair, leave_out_misfit=False)
             lo = case2([without_rows(d, near_reversals(d)) for d in pair], leave_out_misfit=False)
             out += [(f.values - truth) / f.std, (lo.values - truth) / lo.std]

@@ -12,7 +12,7 @@ Also the fit quality measures every case reports (R² and relative residual norm
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from enum import StrEnum
 
 import numpy as np
@@ -37,6 +37,8 @@ from drivegain.identify.hac import (
     sandwich,
     with_repeats,
 )
+from drivegain.identify.leaveout import misfit_drives, near_reversals, without_rows
+from drivegain.identify.predict import prediction_quality, predictions
 from drivegain.identify.weighting import joint_sigma
 
 
@@ -103,8 +105,9 @@ class CaseResult:
         How the standard deviations were computed.
     left_out
         Entries (sample and joint) the fit left out near reversals of the drives whose
-        entries there the gains' error model finds misfit (:func:`misfit_drives`); the error
-        norms and R² still count every entry.
+        entries there the gains' error model finds misfit
+        (:func:`~drivegain.identify.leaveout.misfit_drives`); the error norms and R² still
+        count every entry.
     """
 
     name: str
@@ -141,101 +144,6 @@ def _payload_slots(designs: Sequence[Design]) -> list[int | None]:
     return slots
 
 
-#: An entry of a drive counts as near a reversal when more than this share of its decimation
-#: filter's window is (``PreparedRun.reversal_share``) ...
-REVERSAL_SHARE_LIMIT = 0.05
-#: ... and so do this many decimated samples either side of it (the drive sticks longer than
-#: its velocity stays below the mark: 0, 2 and 5 tried on random excitations in closed loop,
-#: docs/model.md).
-REVERSAL_MARGIN = 2
-
-
-#: A drive's entries near its reversals are misfit when the maximum-likelihood gains' κ̂ (the
-#: variance they add per unit share of reversal, relative to the drive's noise) is at least
-#: this: the drive sticks there (closed loop: κ̂ 1.7-10 per drive on the simulated cell) or its
-#: Coulomb sign is uncertain (a slow reversal under the encoder's quantum); where neither, κ̂
-#: stayed below 0.7 (docs/model.md, "Case 2 without the misfit reversals").
-MISFIT_KAPPA = 1.0
-
-
-def misfit_drives(noise: CaseNoise) -> np.ndarray:
-    """Which drives' entries near reversals the gains' error model finds misfit:
-    κ̂ ≥ :data:`MISFIT_KAPPA`.
-
-    Returns
-    -------
-    numpy.ndarray
-        (n,) bool, per drive.
-    """
-    return np.asarray(noise.whitening.kappa, dtype=float) >= MISFIT_KAPPA
-
-
-def near_reversals(
-    d: Design,
-    limit: float = REVERSAL_SHARE_LIMIT,
-    margin: int = REVERSAL_MARGIN,
-    drives: np.ndarray | None = None,
-) -> np.ndarray:
-    """Which entries of each joint's equations lie near a reversal of a drive they carry.
-
-    Joint j's torque is carried by the drives its row of the coupled current matrix reaches
-    (``kt[j] != 0``); its entry k is near a reversal when one of those drives (of ``drives``)
-    has more than ``limit`` of its filter window near one at a sample within ``margin`` of k.
-
-    Parameters
-    ----------
-    d
-        The design.
-    limit
-        Share of the window (0-1).
-    margin
-        Samples either side (≥ 0).
-    drives
-        (n,) bool: the drives whose reversals count (None: all).
-
-    Returns
-    -------
-    numpy.ndarray
-        (N, n) bool, all False when the run has no reversal shares.
-
-    Raises
-    ------
-    ValueError
-        ``limit`` outside [0, 1) or a negative ``margin``.
-    """
-    if not 0.0 <= limit < 1.0:
-        raise ValueError(f"limit must be in [0, 1), got {limit}")
-    if margin < 0:
-        raise ValueError(f"margin must be 0 or more, got {margin}")
-    n = d.n
-    out = np.zeros((d.rows, n), dtype=bool)
-    share = d.run.reversal_share
-    if share is None:
-        return out
-    marked = np.abs(share) > limit  # (N, drives)
-    if drives is not None:
-        drives = np.asarray(drives, dtype=bool)
-        if drives.shape != (marked.shape[1],):
-            raise ValueError(f"drives must be ({marked.shape[1]},) bool, got {drives.shape}")
-        marked &= drives[None, :]
-    window = np.ones(2 * margin + 1)
-    for j in range(n):
-        rows = marked[:, d.kt[j] != 0.0].any(axis=1)
-        out[:, j] = np.convolve(rows.astype(float), window, mode="same") > 0.0
-    return out
-
-
-def without_rows(d: Design, drop: np.ndarray) -> Design:
-    """``d`` with the entries ``drop`` ((N, n) bool) left out of every fit of its rows."""
-    drop = np.asarray(drop, dtype=bool)
-    if drop.shape != (d.rows, d.n):
-        raise ValueError(f"drop must be ({d.rows}, {d.n}), got {drop.shape}")
-    weight = (~drop).astype(float)
-    if d.row_weight is not None:
-        weight *= d.row_weight
-    return replace(d, row_weight=weight)
-
-
 def fit_case(
     name: str,
     designs: Sequence[Design],
@@ -253,10 +161,11 @@ def fit_case(
     (Gautier 1997); standard deviations by :func:`case_covariance`.
 
     Where the gains' error model finds a drive's entries near its reversals misfit
-    (:func:`misfit_drives`: it sticks there, or its Coulomb sign is uncertain), the entries
-    near those reversals (:func:`near_reversals`) are left out of the fit and its standard
-    deviations, which are then Newey-West's with the gains' covariance and their correlation
-    with this fit's residuals (:func:`~.casenoise.gain_scores`): that torque is a
+    (:func:`~drivegain.identify.leaveout.misfit_drives`: it sticks there, or its Coulomb sign
+    is uncertain), the entries near those reversals
+    (:func:`~drivegain.identify.leaveout.near_reversals`) are left out of the fit and its
+    standard deviations, which are then Newey-West's with the gains' covariance and their
+    correlation with this fit's residuals (:func:`~.casenoise.gain_scores`): that torque is a
     misfit, not noise, and the fit would borrow the payload's inertias to explain it
     (docs/model.md, "Case 2 without the misfit reversals"). The error norms and R² count
     every entry.
@@ -508,86 +417,6 @@ ROW_BLOCK = 2048
 
 def _row_blocks(samples: int) -> list[slice]:
     return [slice(k, min(k + ROW_BLOCK, samples)) for k in range(0, samples, ROW_BLOCK)]
-
-
-def predictions(
-    designs: Sequence[Design], gains: np.ndarray, chi: np.ndarray, payloads: Sequence[np.ndarray]
-) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Measured and computed joint torques of every design.
-
-    Parameters
-    ----------
-    designs
-        The runs.
-    gains
-        Drive gains, N·m/A, (n,).
-    chi
-        Base parameters (SI units of each parameter), (nb,).
-    payloads
-        Payload parameters of the loaded designs, in their order, (10,) each.
-
-    Returns
-    -------
-    list of (numpy.ndarray, numpy.ndarray)
-        Per design, (measured V·g, computed W·χ + W_L·χ_L), N·m, (N, n) each.
-    """
-    out = []
-    k = 0
-    for d in designs:
-        chi_l = None
-        if d.loaded:
-            chi_l = payloads[k]
-            k += 1
-        out.append((d.torque(gains), d.model_torque(chi, chi_l)))
-    return out
-
-
-@dataclass(frozen=True)
-class PredictionQuality:
-    """How computed torques match measured ones, all designs together.
-
-    Attributes
-    ----------
-    r2, joint_relative
-        Per joint: R² (NaN for a joint whose torque is constant) and ‖ρ_j‖/‖Y_j‖, (n,) each.
-    residual_norm
-        ‖ρ‖, N·m, over every sample and joint.
-    relative_error
-        ‖ρ‖/‖Y‖.
-    """
-
-    r2: np.ndarray
-    joint_relative: np.ndarray
-    residual_norm: float
-    relative_error: float
-
-
-def prediction_quality(pairs: Sequence[tuple[np.ndarray, np.ndarray]]) -> PredictionQuality:
-    """Fit quality of measured against computed torques, all designs together.
-
-    Parameters
-    ----------
-    pairs
-        (measured, computed) torques per design, N·m, as :func:`predictions` returns.
-
-    Returns
-    -------
-    PredictionQuality
-        Per joint and overall.
-    """
-    y = np.concatenate([p[0] for p in pairs])
-    res = y - np.concatenate([p[1] for p in pairs])
-    ss_res = np.sum(res**2, axis=0)
-    ss_tot = np.sum((y - y.mean(axis=0)) ** 2, axis=0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        r2 = np.where(ss_tot > 0, 1.0 - ss_res / ss_tot, np.nan)
-        rel = np.sqrt(ss_res / np.sum(y**2, axis=0))
-    return PredictionQuality(
-        r2=r2,
-        joint_relative=rel,
-        residual_norm=float(np.linalg.norm(res)),
-        relative_error=float(np.linalg.norm(res) / np.linalg.norm(y)),
-    )
 
 
 def _joint_quality(

@@ -33,9 +33,10 @@ from drivegain.config.robot import Robot
 from drivegain.dynamics.base import BaseParameters
 from drivegain.dynamics.params import N_INERTIAL, N_PER_JOINT, inertial_slice, n_standard
 from drivegain.errors import IdentificationError, InputError
-from drivegain.identify.cases import PayloadEstimate, prediction_quality, predictions
+from drivegain.identify.cases import PayloadEstimate
 from drivegain.identify.crossval import split_runs
 from drivegain.identify.design import Design, stacked_factor
+from drivegain.identify.predict import prediction_quality, predictions
 
 #: Gain handling of the consistent fit: keep the given/identified gains, or solve them jointly
 #: (needs a loaded run with a known payload mass) with a sign constraint.

@@ -13,9 +13,10 @@ import numpy as np
 
 from drivegain.errors import InputError
 from drivegain.identify import forked
-from drivegain.identify.cases import fit_case, prediction_quality, predictions
+from drivegain.identify.cases import fit_case
 from drivegain.identify.design import Design
 from drivegain.identify.estimate import r_factor
+from drivegain.identify.predict import prediction_quality, predictions
 
 #: Fraction of each run held out (its end) for cross-validation.
 CV_FRACTION = 0.3

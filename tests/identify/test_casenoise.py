@@ -17,16 +17,11 @@ import pytest
 
 from drivegain.errors import UsageError
 from drivegain.identify.casenoise import ToeplitzSum, case_noise, gain_scores, model_sums
-from drivegain.identify.cases import (
-    CaseCovariance,
-    case_covariance,
-    fit_case,
-    near_reversals,
-    without_rows,
-)
+from drivegain.identify.cases import CaseCovariance, case_covariance, fit_case
 from drivegain.identify.design import ls_transform, make_design
 from drivegain.identify.gains import Estimator, estimate_gains
 from drivegain.identify.hac import matched_root
+from drivegain.identify.leaveout import near_reversals, without_rows
 from drivegain.identify.mlmodel import Whitening, reversal_of
 
 RATE = 250.0

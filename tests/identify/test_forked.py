@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from drivegain.errors import IdentificationError, InputError
-from drivegain.identify import cases, crossval, forked
+from drivegain.identify import crossval, forked, leaveout
 from drivegain.identify.design import make_design
 from drivegain.identify.procedure import Options, Problem, run_procedure
 
@@ -79,7 +79,7 @@ def test_forked_fits_equal_fits_in_turn(world, noisy_run, monkeypatch, fork_allo
     )
     # Case 2 under the gains' error model, whose covariance forks (the gate that would leave
     # out these runs' slow reversals and take Newey-West's σ instead held shut)
-    monkeypatch.setattr(cases, "MISFIT_KAPPA", np.inf)
+    monkeypatch.setattr(leaveout, "MISFIT_KAPPA", np.inf)
     monkeypatch.setattr(forked, "PARALLEL_EQUATIONS", 10**12)
     in_turn = run_procedure(problem, Options())
 

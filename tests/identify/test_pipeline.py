@@ -11,7 +11,8 @@ import pytest
 
 from drivegain.cli import main
 from drivegain.config import resource_path
-from drivegain.identify.cases import MISFIT_KAPPA, CaseCovariance
+from drivegain.identify.cases import CaseCovariance
+from drivegain.identify.leaveout import MISFIT_KAPPA
 
 ROBOT = resource_path("tx40.toml")
 PAYLOAD = resource_path("payloads/calibrated-4590g.toml")

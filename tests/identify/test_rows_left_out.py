@@ -1,5 +1,5 @@
-"""Entries left out of Case 2 (``Design.row_weight``, ``cases.without_rows``,
-``cases.near_reversals``).
+"""Entries left out of Case 2 (``Design.row_weight``, ``leaveout.without_rows``,
+``leaveout.near_reversals``).
 
 Each product of a design with some entries left out is checked against the same product on
 the kept rows of the unweighted design, built by indexing (not through the weight), and the
@@ -15,18 +15,12 @@ import pytest
 
 from drivegain.errors import UsageError
 from drivegain.identify.casenoise import gain_scores
-from drivegain.identify.cases import (
-    MISFIT_KAPPA,
-    CaseCovariance,
-    case_covariance,
-    fit_case,
-    near_reversals,
-    predictions,
-    without_rows,
-)
+from drivegain.identify.cases import CaseCovariance, case_covariance, fit_case
 from drivegain.identify.design import ls_transform, make_design
 from drivegain.identify.gains import Estimator, estimate_gains
+from drivegain.identify.leaveout import MISFIT_KAPPA, near_reversals, without_rows
 from drivegain.identify.mlmodel import Whitening
+from drivegain.identify.predict import predictions
 
 
 def _design(world, run):

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from drivegain.dynamics.params import truth_vector
-from drivegain.identify.cases import MISFIT_KAPPA
+from drivegain.identify.leaveout import MISFIT_KAPPA
 from drivegain.validation.estimators import METHODS, OURS, run_seed
 from drivegain.validation.scenarios import SCENARIOS
 from drivegain.validation.statistics import payload_z
