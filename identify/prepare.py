@@ -25,16 +25,15 @@ from drivegain.errors import DataError
 from drivegain.identify.columns import regressor_columns
 from drivegain.identify.compact import CompactRegressor
 from drivegain.identify.coulombsign import encoder_steps, sign_cutoff
-from drivegain.identify.reversals import reversal_entries, reversal_marks
-from drivegain.identify.signal import (
-    FilterSettings,
+from drivegain.identify.decimate import (
     decimate_columns,
     decimation_memory,
     decimation_windows,
-    derivatives,
     first_equal,
     parallel_decimate,
 )
+from drivegain.identify.reversals import reversal_entries, reversal_marks
+from drivegain.identify.signal import FilterSettings, derivatives
 
 #: Full-rate samples per regressor evaluation and least decimation chunk: the (chunk, n, 86)
 #: temporary is ~17 MB for n = 6.
@@ -286,7 +285,7 @@ def prepare_recording(
 
     The full-rate regressor exists only for a window of samples at a time: each chunk is
     decimated with the samples around it that the decimation filter remembers
-    (:func:`~.signal.decimation_memory`), which the next chunk reuses rather than recomputes, so the
+    (:func:`~.decimate.decimation_memory`), which the next chunk reuses rather than recomputes, so the
     result equals a whole-signal decimation and memory stays bounded by the decimated output.
     Structurally zero regressor entries are not filtered.
 

@@ -15,8 +15,8 @@ from typing import Any
 import numpy as np
 
 from drivegain.errors import InputError
+from drivegain.identify.decimate import parallel_decimate
 from drivegain.identify.gains import DEFAULT_ALPHA_GRID
-from drivegain.identify.signal import parallel_decimate
 from drivegain.validation.estimators import METHODS, OURS, SAME_INFORMATION, Method, SeedResult
 from drivegain.validation.scenarios import ROOT_SEED
 from drivegain.validation.world import World

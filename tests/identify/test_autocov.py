@@ -14,8 +14,8 @@ import pytest
 from drivegain.errors import UsageError
 from drivegain.identify import autocov
 from drivegain.identify.autocov import LaggedSums
+from drivegain.identify.decimate import parallel_decimate
 from drivegain.identify.hac import LongRunSum, sandwich
-from drivegain.identify.signal import parallel_decimate
 
 
 def _slow_design(rng: np.random.Generator, samples: int, n: int, p: int) -> np.ndarray:

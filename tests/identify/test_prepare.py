@@ -137,7 +137,7 @@ def test_decimation_stage_equals_scipy_decimate() -> None:
     """The cached filter design gives scipy.signal.decimate's output exactly."""
     import scipy.signal as sps
 
-    from drivegain.identify.signal import MAX_STAGE, _decimate_stage
+    from drivegain.identify.decimate import MAX_STAGE, _decimate_stage
 
     rng = np.random.default_rng(0)
     x = rng.normal(size=(3000, 3)).cumsum(axis=0)

@@ -19,8 +19,9 @@ from drivegain.dynamics.base import random_states
 from drivegain.errors import InputError
 from drivegain.identify.columns import regressor_columns
 from drivegain.identify.coulombsign import SIGN_QUANTUM_NOISE
+from drivegain.identify.decimate import parallel_decimate
 from drivegain.identify.prepare import prepare_recording
-from drivegain.identify.signal import FilterSettings, default_filter, parallel_decimate
+from drivegain.identify.signal import FilterSettings, default_filter
 
 RATE_HZ = 250.0
 

@@ -6,17 +6,15 @@ import numpy as np
 import pytest
 
 from drivegain.errors import DataError, InputError, UsageError
-from drivegain.identify import signal
-from drivegain.identify.signal import (
-    FilterSettings,
+from drivegain.identify import decimate as dec
+from drivegain.identify.decimate import (
     decimate_columns,
     decimated_length,
     decimation_stages,
-    default_filter,
-    derivatives,
     first_equal,
     parallel_decimate,
 )
+from drivegain.identify.signal import FilterSettings, default_filter, derivatives
 
 
 def fourier(t: np.ndarray, base_hz: float, harmonics: int, n: int, seed: int):
@@ -230,14 +228,14 @@ def test_equal_columns_are_filtered_once_with_the_same_numbers(monkeypatch) -> N
     x[1500, -1] += 1.0  # said to equal column 0, but not here: filtered on its own
     same_as = np.array([0, 1, 2, 3, 1, 3, 1, 0])
     widths: list[int] = []
-    decimate = signal.parallel_decimate
+    decimate = dec.parallel_decimate
 
     def counting(arrays, *a, **k):
         widths.append(arrays[0].shape[1])
         return decimate(arrays, *a, **k)
 
-    monkeypatch.setattr(signal, "parallel_decimate", counting)
-    monkeypatch.setattr(signal, "SERIES_BLOCK", 3)
+    monkeypatch.setattr(dec, "parallel_decimate", counting)
+    monkeypatch.setattr(dec, "SERIES_BLOCK", 3)
     for factor in (1, 6):
         widths.clear()
         got = decimate_columns(x, factor, same_as)
@@ -261,7 +259,7 @@ def test_decimation_is_the_same_for_any_memory_layout(factor: int) -> None:
     x = rng.normal(size=(4000, 5)).cumsum(axis=0)
     expect = x
     for q in decimation_stages(factor):
-        ftype = "iir" if q <= signal.MAX_STAGE else "fir"
+        ftype = "iir" if q <= dec.MAX_STAGE else "fir"
         expect = sps.decimate(expect, q, ftype=ftype, axis=0, zero_phase=True)
     for layout in (x, np.asfortranarray(x), x[:, ::-1].copy()[:, ::-1]):
         np.testing.assert_array_equal(decimate_columns(layout, factor), expect)
