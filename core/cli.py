@@ -375,6 +375,14 @@ def build_parser() -> argparse.ArgumentParser:
         "b's currents better): the position filter blurs the stop of a closed-loop drive at "
         "each reversal (docs/model.md)",
     )
+    p.add_argument(
+        "--reversal-mask",
+        type=POSITIVE,
+        metavar="S",
+        help="weight the equations near each velocity reversal out of every fit, before the "
+        "decimation, rising back over S seconds either side (0.05-0.1 for drives in closed "
+        "loop, which stick at reversals; default: every equation counts, docs/model.md)",
+    )
     p.add_argument("--decimate", type=DECIMATE, help="decimation factor")
     p.add_argument(
         "--current-delay",

@@ -164,6 +164,7 @@ def _filter_for(run: LoadedRun, req: IdentifyRequest) -> FilterSettings:
             decimate=req.decimate,
             current_delay=req.current_delay,
             sign_cutoff_hz=req.sign_cutoff,
+            reversal_mask_s=req.reversal_mask,
         )
     except InputError as exc:
         raise InputError(f"run {run.label} ({run.path}): {exc}") from None
@@ -207,6 +208,7 @@ def _run_info(run: LoadedRun, prepared: PreparedRun, asked: FilterSettings) -> R
             "current_delay": st.current_delay,
             "sign_cutoff_hz": st.sign_cutoff,
             "sign_noise_limit": st.sign_noise_limit,
+            "reversal_mask_s": st.reversal_mask_s,
         },
         notes=notes,
     )

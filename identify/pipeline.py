@@ -51,6 +51,7 @@ from drivegain.identify.runs import (
     load_gains,
     read_header,
 )
+from drivegain.identify.signal import MAX_REVERSAL_MASK_S
 from drivegain.identify.signchoice import choose_sign, has_choice
 
 # --------------------------------------------------------------------------------------------
@@ -79,6 +80,7 @@ class IdentifyRequest:
     alpha: float | None = None
     cutoff: float | None = None
     sign_cutoff: float | None = None  # --sign-cutoff: velocity of the Coulomb columns' signs
+    reversal_mask: float | None = None  # --reversal-mask: taper of the reversal mask, s
     decimate: int | None = None
     reference: Path | None = None
     progress: bool = True
@@ -188,6 +190,12 @@ def _check_request(req: IdentifyRequest) -> None:
     if not (math.isfinite(req.current_delay) and 0.0 <= req.current_delay <= 1.0):
         raise InputError(
             f"must be between 0 and 1 sample, got {req.current_delay}", key="--current-delay"
+        )
+    rm = req.reversal_mask
+    if rm is not None and not (math.isfinite(rm) and 0.0 < rm <= MAX_REVERSAL_MASK_S):
+        raise InputError(
+            f"must be a positive number of seconds, at most {MAX_REVERSAL_MASK_S:g}, got {rm}",
+            key="--reversal-mask",
         )
     if req.decimate is not None and req.decimate < 1:
         raise InputError(f"must be an integer >= 1, got {req.decimate}", key="--decimate")
@@ -509,6 +517,7 @@ def identify_command(args: argparse.Namespace) -> int:
         alpha=args.alpha,
         cutoff=args.cutoff,
         sign_cutoff=getattr(args, "sign_cutoff", None),
+        reversal_mask=getattr(args, "reversal_mask", None),
         decimate=args.decimate,
         reference=getattr(args, "reference", None),
         progress=True,

@@ -32,7 +32,7 @@ from drivegain.identify.decimate import (
     first_equal,
     parallel_decimate,
 )
-from drivegain.identify.reversals import reversal_entries, reversal_marks
+from drivegain.identify.reversals import reversal_entries, reversal_marks, reversal_mask
 from drivegain.identify.signal import FilterSettings, derivatives
 
 #: Full-rate samples per regressor evaluation and least decimation chunk: the (chunk, n, 86)
@@ -285,8 +285,9 @@ def prepare_recording(
 
     The full-rate regressor exists only for a window of samples at a time: each chunk is
     decimated with the samples around it that the decimation filter remembers
-    (:func:`~.decimate.decimation_memory`), which the next chunk reuses rather than recomputes, so the
-    result equals a whole-signal decimation and memory stays bounded by the decimated output.
+    (:func:`~.decimate.decimation_memory`), which the next chunk reuses rather than recomputes,
+    so the result equals a whole-signal decimation and memory stays bounded by the decimated
+    output.
     Structurally zero regressor entries are not filtered.
 
     Parameters
@@ -360,6 +361,16 @@ def prepare_recording(
     rest = at_rest(qd)
     zones, signs = reversal_marks(qd, model.robot)
     del qd
+    mask = None
+    if settings.reversal_mask_s is not None:
+        # Both sides of every equation weighted alike before the decimation, so Y = W χ stays
+        # exact without the stretches around reversals (reversals.reversal_mask). The zones
+        # are then weighted out, so no entry has a share near a reversal and no reversal
+        # Coulomb column is left to fit.
+        mask = reversal_mask(zones, model.robot, rate_hz, settings.reversal_mask_s)
+        current = current * mask
+        zones = zones * mask
+        signs = np.zeros_like(signs)
     (c_all, rest_d, zones_d, signs_d) = parallel_decimate(
         [current, rest.astype(float), zones, signs], f, 0, source=src
     )
@@ -393,6 +404,8 @@ def prepare_recording(
                 (rows[order], cols[order]),
                 sign_qd=sign_qd,
             )
+            if mask is not None:  # series i belongs to joint rows[order[i]]
+                window[s - lo : e - lo] *= mask[s:e][:, rows[order]]
         # Decimated sample k of this window is input sample lo + k·f (lo is a multiple of f).
         first = (a - lo) // f
         count = -(-(b - a) // f)

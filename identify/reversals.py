@@ -135,3 +135,80 @@ def source_names(robot: Robot) -> list[str]:
     for row in velocity[robot.n :]:
         names.append("motor " + "+".join(robot.joint_names[j] for j in np.flatnonzero(row)))
     return names
+
+
+def coupled_blocks(robot: Robot) -> np.ndarray:
+    """Which drives a coupling ties together: the connected groups of the transmission matrix.
+
+    Returns
+    -------
+    numpy.ndarray
+        (n,) int: drive i's group, the lowest drive index in it (the TX-40: 0 1 2 3 4 4).
+    """
+    k = robot.transmission()
+    link = (k != 0.0) | (k.T != 0.0)
+    group = np.arange(robot.n)
+    changed = True
+    while changed:  # spread the lowest index along the links until nothing moves
+        low = np.array([group[link[i]].min() for i in range(robot.n)])
+        changed = bool(np.any(low < group))
+        group = np.minimum(group, low)
+    return group
+
+
+def reversal_mask(zones: np.ndarray, robot: Robot, rate_hz: float, taper_s: float) -> np.ndarray:
+    """Weights that take the equations near reversals out of a fit, at the full rate.
+
+    A drive that sticks at a reversal leaves an equation error no column of the model follows
+    (the friction holds any torque in [−Fc, Fc]), and after it a catch-up whose fast torque the
+    filtered positions do not carry. Multiplying both sides of every equation by the same weight
+    before the decimation keeps ``Y = W χ`` exact and leaves those stretches out. The weight is
+    0 inside every reversal zone of the drives of a coupled group (:func:`coupled_blocks`: the
+    current matrix mixes their torques, so their equations are weighted alike) and rises as a
+    raised cosine to 1 over ``taper_s`` either side: a step would bring the currents' fast
+    content the decimation filter removes down into its pass band.
+
+    Parameters
+    ----------
+    zones
+        (N, n) of :func:`reversal_marks`, 1 near a reversal reaching drive i.
+    robot
+        The robot (its couplings).
+    rate_hz
+        Sample rate, Hz.
+    taper_s
+        Width of the rise either side of a zone, s (> 0).
+
+    Returns
+    -------
+    numpy.ndarray
+        (N, n) in [0, 1]: the weight of drive i's current and of joint i's equations.
+
+    Raises
+    ------
+    ValueError
+        ``taper_s`` or ``rate_hz`` not positive, or ``zones`` not (N, n).
+    """
+    zones = np.asarray(zones, dtype=float)
+    if not (np.isfinite(taper_s) and taper_s > 0.0):
+        raise ValueError(f"taper_s must be positive, got {taper_s}")
+    if not (np.isfinite(rate_hz) and rate_hz > 0.0):
+        raise ValueError(f"rate_hz must be positive, got {rate_hz}")
+    if zones.ndim != 2 or zones.shape[1] != robot.n:
+        raise ValueError(f"zones must be (N, {robot.n}), got {zones.shape}")
+    width = taper_s * rate_hz  # samples
+    group = coupled_blocks(robot)
+    t = np.arange(zones.shape[0])
+    out = np.ones_like(zones)
+    for g in np.unique(group):
+        marked = np.flatnonzero((zones[:, group == g] > 0.0).any(axis=1))
+        if marked.size == 0:
+            continue
+        # samples to the nearest marked sample, on either side
+        right = np.searchsorted(marked, t).clip(max=marked.size - 1)
+        left = (right - 1).clip(min=0)
+        dist = np.minimum(np.abs(t - marked[right]), np.abs(t - marked[left])).astype(float)
+        out[:, group == g] = np.where(dist >= width, 1.0, 0.5 - 0.5 * np.cos(np.pi * dist / width))[
+            :, None
+        ]
+    return out

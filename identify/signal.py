@@ -43,6 +43,9 @@ MAX_DEFAULT_CUTOFF_HZ = 50.0
 SIGN_CUTOFF_MULTIPLE = 8.0
 #: the sign's default cut-off stays below this fraction of the sample rate (Nyquist: 0.5)
 SIGN_CUTOFF_RATE_FRACTION = 0.4
+#: longest taper of the reversal mask, s: a joint of an excitation reverses every second or so,
+#: so a wider one would leave little of a run
+MAX_REVERSAL_MASK_S = 1.0
 # Relative level below which a filter's impulse response counts as settled (border trimming).
 # filtfilt starts from the steady state of an odd extension, so the actual border error is far
 # below the impulse response's envelope: with 1e-3 here, the trimmed interior matches the
@@ -79,6 +82,11 @@ class FilterSettings:
         When set, the preparation lowers ``sign_cutoff_hz`` by octaves (not below
         ``cutoff_hz``) until each drive's encoder quantum adds at most this fraction of its RMS
         speed to that velocity (:mod:`~drivegain.identify.coulombsign`); None: as given.
+    reversal_mask_s
+        When set (``--reversal-mask``), the equations of each coupled group of drives are
+        weighted out of every fit near its reversals, before the decimation: 0 inside the
+        zones, rising over this many seconds either side
+        (:func:`~drivegain.identify.reversals.reversal_mask`); None: every equation counts.
     """
 
     cutoff_hz: float
@@ -88,6 +96,7 @@ class FilterSettings:
     current_delay: float = 0.0
     sign_cutoff_hz: float | None = None
     sign_noise_limit: float | None = None
+    reversal_mask_s: float | None = None
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.cutoff_hz) and self.cutoff_hz > 0):
@@ -110,6 +119,12 @@ class FilterSettings:
         lim = self.sign_noise_limit
         if lim is not None and not (math.isfinite(lim) and lim > 0):
             raise InputError(f"must be a positive fraction, got {lim}", key="sign_noise_limit")
+        rm = self.reversal_mask_s
+        if rm is not None and not (math.isfinite(rm) and 0.0 < rm <= MAX_REVERSAL_MASK_S):
+            raise InputError(
+                f"must be a positive number of seconds, at most {MAX_REVERSAL_MASK_S:g}, got {rm}",
+                key="reversal_mask",
+            )
 
     @property
     def sign_cutoff(self) -> float:
@@ -186,6 +201,7 @@ def default_filter(
     order: int = 4,
     current_delay: float = 0.0,
     sign_cutoff_hz: float | None = None,
+    reversal_mask_s: float | None = None,
 ) -> FilterSettings:
     """Filter settings derived from the sample rate and the trajectory's bandwidth.
 
@@ -212,6 +228,8 @@ def default_filter(
         the Nyquist frequency; None: :data:`SIGN_CUTOFF_MULTIPLE` times the position cut-off,
         at most :data:`SIGN_CUTOFF_RATE_FRACTION` of the rate (never below the cut-off), lowered
         where the encoder is coarse (``sign_noise_limit`` :data:`SIGN_QUANTUM_NOISE`).
+    reversal_mask_s
+        Taper of the reversal mask, s (:class:`FilterSettings`); None: no mask.
 
     Raises
     ------
@@ -268,6 +286,7 @@ def default_filter(
         current_delay=float(current_delay),
         sign_cutoff_hz=float(sign_cutoff_hz),
         sign_noise_limit=noise_limit,
+        reversal_mask_s=None if reversal_mask_s is None else float(reversal_mask_s),
     )
 
 

@@ -164,7 +164,10 @@ def with_trajectory(world: World, fourier: FourierTrajectory) -> World:
         world,
         fourier=fourier,
         trajectory_json=b"",
-        settings=default_filter(world.rate_hz, bandwidth),
+        # the filters follow the trajectory's bandwidth; the reversal mask is the world's choice
+        settings=default_filter(
+            world.rate_hz, bandwidth, reversal_mask_s=world.settings.reversal_mask_s
+        ),
         t=t,
         q=q,
         qd=qd,

@@ -1,0 +1,165 @@
+"""What the reversal mask (``identify --reversal-mask S``) does to our gains and payloads in
+closed loop (issue 17 study).
+
+The closed-loop scenarios of the validation study, ours (the maximum-likelihood gains, then
+Case 2's payloads as the study fits them), each seed prepared without the mask and with each
+taper asked: the same simulated runs every way. Printed per scenario and taper: RMS gain error
+per joint (% of the gain), median σ̂, standard deviation and mean of z = (ĝ − g)/σ̂ over the
+seeds, pooled ±2σ coverage of the gains; for runs b and c's payloads, the range over their 19
+parameters of the standard deviation and mean of z and the pooled coverage; then the ratio of
+each taper's RMS gain error to the plain one's, measured in the same run.
+
+Usage: python benchmarks/study_reversal_mask.py [--seeds 24] [--tapers 0.05,0.1]
+       [--scenarios closed-loop,random-closed-loop] [--workers 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class SeedOutcome:
+    """One seed of one scenario at one taper (None: no mask)."""
+
+    scenario: str
+    taper: float | None
+    seed: int
+    gain_z: np.ndarray  # (n,)
+    gain_err: np.ndarray  # relative, (n,)
+    gain_std: np.ndarray  # relative, (n,)
+    payload_z: np.ndarray  # (19,): run b's 10 then run c's 9 unknown (its mass is known)
+
+
+@functools.cache
+def _world():
+    from drivegain.validation.world import make_world
+
+    return make_world()
+
+
+def _payload_z(res, world) -> np.ndarray:
+    from drivegain.validation.estimators import OURS
+
+    # as the study pools them (statistics.payload_z_stats): run b's known mass left out (the
+    # gains reproduce it), and whatever Case 2 did not estimate (σ = 0: run c's known mass)
+    zs = []
+    for vals, std, truth, known in (
+        (res.payload_b, res.payload_b_std, world.payload.values, world.payload.known_mask()),
+        (res.payload_c, res.payload_c_std, world.validation.values, None),
+    ):
+        s = np.asarray(std[OURS], dtype=float)
+        ok = s > 0
+        if known is not None:
+            ok &= ~np.asarray(known, dtype=bool)
+        zs.append(((np.asarray(vals[OURS]) - truth) / np.where(ok, s, 1.0))[ok])
+    return np.concatenate(zs)
+
+
+def _one(task: tuple[str, float | None, int]) -> SeedOutcome:
+    from drivegain.identify.blas import limited_blas_threads
+    from drivegain.validation.estimators import METHODS, OURS, run_seed
+    from drivegain.validation.scenarios import SCENARIOS
+
+    key, taper, seed = task
+    sc = next(s for s in SCENARIOS if s.key == key)
+    world = _world()
+    if taper is not None:  # seed_world keeps it when it draws a random trajectory
+        world = replace(world, settings=replace(world.settings, reversal_mask_s=taper))
+    truth = np.asarray(world.truth.gains, dtype=float)
+    with limited_blas_threads(1):
+        res = run_seed(world, seed, sc, [m for m in METHODS if m.key == OURS])
+    if OURS not in res.gains:
+        raise RuntimeError(f"{key} seed {seed} taper {taper}: {res.failures}")
+    g, s = res.gains[OURS], res.std[OURS]
+    return SeedOutcome(
+        key,
+        taper,
+        seed,
+        (g - truth) / s,
+        (g - truth) / np.abs(truth),
+        s / np.abs(truth),
+        _payload_z(res, world),
+    )
+
+
+def _row(name: str, values: np.ndarray, digits: int = 3) -> str:
+    return f"{name:30s}" + "".join(f"{v:9.{digits}f}" for v in values)
+
+
+def study(scenarios: list[str], tapers: list[float], seeds: int, workers: int) -> list[SeedOutcome]:
+    """Run the study and print its tables (see the module docstring).
+
+    Raises
+    ------
+    ValueError
+        Fewer than 2 seeds, an unknown scenario or a taper outside (0, 1] s.
+    """
+    from drivegain.validation.scenarios import SCENARIOS
+
+    known = {s.key for s in SCENARIOS}
+    if seeds < 2:
+        raise ValueError(f"need 2 seeds or more, got {seeds}")
+    if bad := [s for s in scenarios if s not in known]:
+        raise ValueError(f"unknown scenario {bad[0]!r} (known: {', '.join(sorted(known))})")
+    if bad_t := [t for t in tapers if not 0.0 < t <= 1.0]:
+        raise ValueError(f"a taper is in (0, 1] s, got {bad_t[0]}")
+    levels: list[float | None] = [None, *tapers]
+    tasks = [(k, t, s) for k in scenarios for s in range(seeds) for t in levels]
+    t0 = time.perf_counter()
+    with ProcessPoolExecutor(workers) as pool:
+        out = list(pool.map(_one, tasks))
+    for key in scenarios:
+        rms = {}
+        print(f"\n{key}: {seeds} seeds, ours")
+        for t in levels:
+            rows = [o for o in out if o.scenario == key and o.taper == t]
+            z = np.array([o.gain_z for o in rows])
+            err = 100 * np.array([o.gain_err for o in rows])
+            pz = np.array([o.payload_z for o in rows])
+            rms[t] = np.sqrt(np.mean(err**2, axis=0))
+            name = "no mask" if t is None else f"taper {t:g} s"
+            print(f"  {name}" + "".join(f"{'j' + str(j + 1):>9s}" for j in range(z.shape[1])))
+            print(_row("    RMS gain error, %", rms[t]))
+            print(_row("    median σ̂, %", np.median(100 * np.array([o.gain_std for o in rows]), 0)))
+            print(_row("    std of z", z.std(axis=0, ddof=1), 2))
+            print(_row("    mean of z", z.mean(axis=0), 2))
+            psd, pmean = pz.std(axis=0, ddof=1), pz.mean(axis=0)
+            print(
+                f"    gains within ±2σ {np.mean(np.abs(z) <= 2):.1%}; payloads: std of z "
+                f"{psd.min():.2f}-{psd.max():.2f}, mean of z {pmean.min():+.2f} to "
+                f"{pmean.max():+.2f}, within ±2σ {np.mean(np.abs(pz) <= 2):.1%}"
+            )
+        for t in tapers:
+            print(_row(f"  ratio taper {t:g} s / no mask", rms[t] / rms[None], 2))
+    print(f"\n{len(tasks)} seed runs of three recordings in {time.perf_counter() - t0:.0f} s")
+    return out
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
+    p.add_argument("--seeds", type=int, default=24, help="noise seeds per scenario (24)")
+    p.add_argument("--tapers", default="0.05,0.1", help="tapers to compare, s (0.05,0.1)")
+    p.add_argument("--scenarios", default="closed-loop,random-closed-loop")
+    p.add_argument("--workers", type=int, default=2, help="processes (2)")
+    a = p.parse_args()
+    try:
+        tapers = [float(x) for x in a.tapers.split(",")]
+    except ValueError:
+        p.error(f"--tapers: numbers separated by commas, got {a.tapers!r}")
+    if a.workers < 1:
+        p.error("--workers needs 1 or more")
+    try:
+        study(a.scenarios.split(","), tapers, a.seeds, a.workers)
+    except ValueError as exc:
+        p.error(str(exc))
+
+
+if __name__ == "__main__":
+    main()
