@@ -46,20 +46,14 @@ def _world():
 
 def _payload_z(res, world) -> np.ndarray:
     from drivegain.validation.estimators import OURS
+    from drivegain.validation.statistics import payload_z
 
-    # as the study pools them (statistics.payload_z_stats): run b's known mass left out (the
-    # gains reproduce it), and whatever Case 2 did not estimate (σ = 0: run c's known mass)
-    zs = []
-    for vals, std, truth, known in (
-        (res.payload_b, res.payload_b_std, world.payload.values, world.payload.known_mask()),
-        (res.payload_c, res.payload_c_std, world.validation.values, None),
-    ):
-        s = np.asarray(std[OURS], dtype=float)
-        ok = s > 0
-        if known is not None:
-            ok &= ~np.asarray(known, dtype=bool)
-        zs.append(((np.asarray(vals[OURS]) - truth) / np.where(ok, s, 1.0))[ok])
-    return np.concatenate(zs)
+    # pooled as the study pools them (statistics.payload_z_stats): run b's known mass left
+    # out (the gains reproduce it), and what Case 2 did not estimate (NaN: run c's known mass)
+    zb = payload_z([res], OURS, world.payload.values, "b")[0]
+    zb[world.payload.known_mask()] = np.nan
+    z = np.concatenate([zb, payload_z([res], OURS, world.validation.values, "c")[0]])
+    return z[np.isfinite(z)]
 
 
 def _one(task: tuple[str, float | None, int]) -> SeedOutcome:

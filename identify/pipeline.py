@@ -51,7 +51,7 @@ from drivegain.identify.runs import (
     load_gains,
     read_header,
 )
-from drivegain.identify.signal import MAX_REVERSAL_MASK_S
+from drivegain.identify.signal import check_reversal_mask
 from drivegain.identify.signchoice import choose_sign, has_choice
 
 # --------------------------------------------------------------------------------------------
@@ -191,12 +191,7 @@ def _check_request(req: IdentifyRequest) -> None:
         raise InputError(
             f"must be between 0 and 1 sample, got {req.current_delay}", key="--current-delay"
         )
-    rm = req.reversal_mask
-    if rm is not None and not (math.isfinite(rm) and 0.0 < rm <= MAX_REVERSAL_MASK_S):
-        raise InputError(
-            f"must be a positive number of seconds, at most {MAX_REVERSAL_MASK_S:g}, got {rm}",
-            key="--reversal-mask",
-        )
+    check_reversal_mask(req.reversal_mask, key="--reversal-mask")
     if req.decimate is not None and req.decimate < 1:
         raise InputError(f"must be an integer >= 1, got {req.decimate}", key="--decimate")
     if req.out.exists() and not req.out.is_dir():

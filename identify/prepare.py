@@ -364,12 +364,12 @@ def prepare_recording(
     mask = None
     if settings.reversal_mask_s is not None:
         # Both sides of every equation weighted alike before the decimation, so Y = W χ stays
-        # exact without the stretches around reversals (reversals.reversal_mask). The zones
-        # are then weighted out, so no entry has a share near a reversal and no reversal
-        # Coulomb column is left to fit.
+        # exact without the stretches around reversals (reversals.reversal_mask). The mask is
+        # 0 wherever a zone reaches its group, so no entry keeps a share near a reversal and
+        # no reversal Coulomb column is left to fit.
         mask = reversal_mask(zones, model.robot, rate_hz, settings.reversal_mask_s)
         current = current * mask
-        zones = zones * mask
+        zones = np.zeros_like(zones)
         signs = np.zeros_like(signs)
     (c_all, rest_d, zones_d, signs_d) = parallel_decimate(
         [current, rest.astype(float), zones, signs], f, 0, source=src

@@ -30,6 +30,7 @@ gains (:attr:`~drivegain.identify.prepare.PreparedRun.reversal_coulomb`).
 from __future__ import annotations
 
 import numpy as np
+from scipy.sparse.csgraph import connected_components
 
 from drivegain.config.robot import Robot
 
@@ -143,17 +144,11 @@ def coupled_blocks(robot: Robot) -> np.ndarray:
     Returns
     -------
     numpy.ndarray
-        (n,) int: drive i's group, the lowest drive index in it (the TX-40: 0 1 2 3 4 4).
+        (n,) int: drive i's group label, numbered from 0 in the order of the drives (the TX-40:
+        0 1 2 3 4 4).
     """
     k = robot.transmission()
-    link = (k != 0.0) | (k.T != 0.0)
-    group = np.arange(robot.n)
-    changed = True
-    while changed:  # spread the lowest index along the links until nothing moves
-        low = np.array([group[link[i]].min() for i in range(robot.n)])
-        changed = bool(np.any(low < group))
-        group = np.minimum(group, low)
-    return group
+    return np.asarray(connected_components((k != 0.0) | (k.T != 0.0), directed=False)[1])
 
 
 def reversal_mask(zones: np.ndarray, robot: Robot, rate_hz: float, taper_s: float) -> np.ndarray:
@@ -208,7 +203,6 @@ def reversal_mask(zones: np.ndarray, robot: Robot, rate_hz: float, taper_s: floa
         right = np.searchsorted(marked, t).clip(max=marked.size - 1)
         left = (right - 1).clip(min=0)
         dist = np.minimum(np.abs(t - marked[right]), np.abs(t - marked[left])).astype(float)
-        out[:, group == g] = np.where(dist >= width, 1.0, 0.5 - 0.5 * np.cos(np.pi * dist / width))[
-            :, None
-        ]
+        weight = np.where(dist >= width, 1.0, 0.5 - 0.5 * np.cos(np.pi * dist / width))
+        out[:, group == g] = weight[:, None]
     return out

@@ -119,12 +119,7 @@ class FilterSettings:
         lim = self.sign_noise_limit
         if lim is not None and not (math.isfinite(lim) and lim > 0):
             raise InputError(f"must be a positive fraction, got {lim}", key="sign_noise_limit")
-        rm = self.reversal_mask_s
-        if rm is not None and not (math.isfinite(rm) and 0.0 < rm <= MAX_REVERSAL_MASK_S):
-            raise InputError(
-                f"must be a positive number of seconds, at most {MAX_REVERSAL_MASK_S:g}, got {rm}",
-                key="reversal_mask",
-            )
+        check_reversal_mask(self.reversal_mask_s)
 
     @property
     def sign_cutoff(self) -> float:
@@ -134,6 +129,23 @@ class FilterSettings:
     def output_rate(self, rate_hz: float) -> float:
         """Sample rate after decimation, Hz."""
         return rate_hz / self.decimate
+
+
+def check_reversal_mask(taper_s: float | None, key: str = "reversal_mask") -> None:
+    """Refuse a reversal mask's taper outside (0, :data:`MAX_REVERSAL_MASK_S`] s (None: no mask).
+
+    Raises
+    ------
+    InputError
+        Naming ``key``.
+    """
+    if taper_s is not None and not (
+        math.isfinite(taper_s) and 0.0 < taper_s <= MAX_REVERSAL_MASK_S
+    ):
+        raise InputError(
+            f"must be a positive number of seconds, at most {MAX_REVERSAL_MASK_S:g}, got {taper_s}",
+            key=key,
+        )
 
 
 def _check_rate(rate_hz: float) -> None:
