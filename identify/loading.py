@@ -312,6 +312,8 @@ def _in_workers(
                 tasks[i] = progress.add_task(f"reading {specs[i][1]} run", total=None)
             for conn in wait(list(conns)):
                 assert isinstance(conn, Connection)
+                if conn not in conns:  # dropped this round by an earlier run's failure
+                    continue
                 i = conns[conn]
                 if _receive(conn, i, specs[i], progress, tasks[i], results, errors):
                     del conns[conn]
@@ -320,7 +322,7 @@ def _in_workers(
                     if i in errors:  # the runs after it no longer matter: only the first
                         pending = [j for j in pending if j < i]  # failure is reported
                         for later in [c for c, j in conns.items() if j > i]:
-                            del conns[later]
+                            progress.remove_task(tasks[conns.pop(later)])
                             later.close()
         for i in range(len(specs)):  # the first failure in the order of the runs
             if i in errors:

@@ -85,18 +85,50 @@ def test_workers_give_the_report_of_the_runs_read_in_turn(
     assert [r["label"] for r in b["runs"]] == ["unloaded", "loaded", "validation"]
 
 
-def test_a_corrupt_log_read_by_a_worker_is_named_and_nothing_is_written(
-    logs: dict[str, Path], tmp_path: Path, parallel: None, capsys: pytest.CaptureFixture[str]
-) -> None:
-    bad = tmp_path / "bad.mcap"
-    data = bytearray(logs["a"].read_bytes())
-    with logs["a"].open("rb") as fh:
+def _corrupt(log: Path, bad: Path) -> Path:
+    """``log`` with 64 bytes overwritten inside a compressed chunk in its middle, as ``bad``
+    (its header and summary still read)."""
+    data = bytearray(log.read_bytes())
+    with log.open("rb") as fh:
         summary = make_reader(fh).get_summary()
     assert summary is not None
     chunk = summary.chunk_indexes[len(summary.chunk_indexes) // 2]
     middle = chunk.chunk_start_offset + chunk.chunk_length // 2
-    data[middle : middle + 64] = b"\xff" * 64  # inside a compressed chunk
+    data[middle : middle + 64] = b"\xff" * 64
     bad.write_bytes(bytes(data))
+    return bad
+
+
+def test_a_corrupt_log_read_by_a_worker_is_named_and_nothing_is_written(
+    logs: dict[str, Path], tmp_path: Path, parallel: None, capsys: pytest.CaptureFixture[str]
+) -> None:
+    bad = _corrupt(logs["a"], tmp_path / "bad.mcap")
+    out = tmp_path / "out"
+    assert main(_argv(logs, out, unloaded=bad)) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(bad) in err[0] and "corrupt" in err[0], err
+    assert not out.exists()
+
+
+def test_a_failure_while_a_later_run_is_also_ready_is_reported(
+    logs: dict[str, Path],
+    tmp_path: Path,
+    parallel: None,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """Every round of the reader sees every worker ready (each waited for in turn, so this does
+    not depend on timing): when run a's worker reports its error, run b's, ready in the same
+    round, is dropped and not read after it (it once ended in an internal KeyError)."""
+    real = loading.wait
+
+    def all_ready(conns, timeout=None):
+        for c in conns:
+            real([c])
+        return list(conns)
+
+    monkeypatch.setattr(loading, "wait", all_ready)
+    bad = _corrupt(logs["a"], tmp_path / "bad.mcap")
     out = tmp_path / "out"
     assert main(_argv(logs, out, unloaded=bad)) == 2
     err = capsys.readouterr().err.strip().splitlines()
