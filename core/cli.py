@@ -112,6 +112,15 @@ MARGIN = _number(float, 0.0, math.pi, "rad")
 FRACTION = _number(float, 1e-3, 1.0)
 RATE = _number(float, 1.0, 100_000.0, "Hz")
 POSITIVE = _number(float, 1e-9, 1e9)
+
+
+def reversal_mask(text: str) -> float | str:
+    """``--reversal-mask``: a taper in seconds, or ``auto`` (identify.maskgate.MASK_AUTO: the
+    mask on the drives that stick, chosen by the fit)."""
+    return text if text == "auto" else POSITIVE(text)
+
+
+reversal_mask.__name__ = "taper"  # argparse names the type in its messages
 DECIMATE = _number(int, 1, 10_000)
 BITRATE = _number(int, 10_000, 1_000_000, "bit/s")
 NONNEGATIVE = _number(float, 0.0, 1e9)
@@ -377,11 +386,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--reversal-mask",
-        type=POSITIVE,
-        metavar="S",
+        type=reversal_mask,
+        metavar="S|auto",
         help="weight the equations near each velocity reversal out of every fit, before the "
         "decimation, rising back over S seconds either side (0.05-0.1 for drives in closed "
-        "loop, which stick at reversals; default: every equation counts, docs/model.md)",
+        "loop, which stick at reversals); auto: only on the drives whose fit says they stick "
+        "(κ̂ ≥ 1), taper 0.1 s (default: every equation counts, docs/model.md)",
     )
     p.add_argument("--decimate", type=DECIMATE, help="decimation factor")
     p.add_argument(

@@ -165,6 +165,7 @@ def _filter_for(run: LoadedRun, req: IdentifyRequest) -> FilterSettings:
             current_delay=req.current_delay,
             sign_cutoff_hz=req.sign_cutoff,
             reversal_mask_s=req.reversal_mask,
+            reversal_mask_drives=req.reversal_mask_drives,
         )
     except InputError as exc:
         raise InputError(f"run {run.label} ({run.path}): {exc}") from None
@@ -209,6 +210,10 @@ def _run_info(run: LoadedRun, prepared: PreparedRun, asked: FilterSettings) -> R
             "sign_cutoff_hz": st.sign_cutoff,
             "sign_noise_limit": st.sign_noise_limit,
             "reversal_mask_s": st.reversal_mask_s,
+            # drive numbers from 1 whose coupled groups the mask weighs; null: every group
+            "reversal_mask_drives": None
+            if st.reversal_mask_drives is None
+            else [d + 1 for d in st.reversal_mask_drives],
         },
         notes=notes,
     )

@@ -34,6 +34,8 @@ from drivegain.identify.design import make_design
 from drivegain.identify.diagnose import current_warnings, other_channel_hint
 from drivegain.identify.gains import Estimator
 from drivegain.identify.loading import Loaded, load_and_prepare
+from drivegain.identify.maskgate import AUTO_TAPER_S, MASK_AUTO, gate_note, stuck_drives
+from drivegain.identify.ml import ml_fit
 from drivegain.identify.procedure import (
     FitMade,
     GivenGains,
@@ -81,6 +83,7 @@ class IdentifyRequest:
     cutoff: float | None = None
     sign_cutoff: float | None = None  # --sign-cutoff: velocity of the Coulomb columns' signs
     reversal_mask: float | None = None  # --reversal-mask: taper of the reversal mask, s
+    reversal_mask_auto: bool = False  # --reversal-mask auto: on the drives that stick
     decimate: int | None = None
     reference: Path | None = None
     progress: bool = True
@@ -92,6 +95,8 @@ class IdentifyRequest:
     # Set by the pipeline, not an option: prepare with the Coulomb sign at the position cut-off
     # (the second candidate of identify.signchoice).
     sign_at_cutoff: bool = False
+    # Set by the pipeline for --reversal-mask auto: the drives whose groups get the mask.
+    reversal_mask_drives: tuple[int, ...] | None = None
 
 
 #: what the report says when ``--no-plots`` skipped the figures
@@ -192,6 +197,11 @@ def _check_request(req: IdentifyRequest) -> None:
             f"must be between 0 and 1 sample, got {req.current_delay}", key="--current-delay"
         )
     check_reversal_mask(req.reversal_mask, key="--reversal-mask")
+    if req.reversal_mask_auto and (req.loaded is None or req.gains is not None):
+        raise InputError(
+            "auto chooses the drives from the gains' fit: it needs --loaded and no --gains",
+            key="--reversal-mask",
+        )
     if req.decimate is not None and req.decimate < 1:
         raise InputError(f"must be an integer >= 1, got {req.decimate}", key="--decimate")
     if req.out.exists() and not req.out.is_dir():
@@ -321,18 +331,18 @@ def _choose_sign(
     form: WristFriction,
     bp: BaseParameters | None,
     loaded: list[Loaded],
-) -> tuple[list[Loaded], FitMade | None]:
+) -> tuple[list[Loaded], FitMade | None, bool]:
     """``loaded``, or the runs prepared again with the Coulomb sign at the position cut-off
     when that explains runs a and b's currents better (:mod:`.signchoice`); the report's runs
     say which, and by how much. With them the kept preparation's fit of runs a and b, for the
-    gains' estimate (None when there was no choice). ``bp``: the friction form's base
-    parameters (None: the procedure reports the form missing). Both preparations are held
-    until the choice: peak memory about twice one's."""
+    gains' estimate (None when there was no choice), and whether the second preparation was
+    kept. ``bp``: the friction form's base parameters (None: the procedure reports the form
+    missing). Both preparations are held until the choice: peak memory about twice one's."""
     payload = loaded[1].prepared.payload
     if bp is None or payload is None:  # the procedure reports either
-        return loaded, None
+        return loaded, None, False
     if not has_choice(x.prepared.filter for x in loaded):
-        return loaded, None
+        return loaded, None, False
     # Every run again, not only a and b: the stored columns depend on all runs' payloads.
     _, other = load_and_prepare(model, specs, replace(req, sign_at_cutoff=True), progress)
     pairs = [
@@ -351,7 +361,44 @@ def _choose_sign(
         if choice.fit is None
         else FitMade(form, kept[0].prepared, kept[1].prepared, choice.fit)
     )
-    return runs, made
+    return runs, made, choice.chosen != 0
+
+
+def _gate_mask(
+    model: RobotModel,
+    specs: list[tuple[Path, str, Payload | None]],
+    req: IdentifyRequest,
+    progress: Any,
+    form: WristFriction,
+    bp: BaseParameters | None,
+    loaded: list[Loaded],
+    made: FitMade | None,
+) -> tuple[list[Loaded], FitMade | None]:
+    """``--reversal-mask auto``: the runs prepared again with the reversal mask on the drives
+    whose κ̂ says they stick (:mod:`.maskgate`), or ``loaded`` itself when none does; each run
+    notes the choice. ``made``: the unmasked preparation's fit of runs a and b when the sign's
+    choice made one (otherwise made here, and handed on when nothing is masked)."""
+    payload = loaded[1].prepared.payload
+    if bp is None or payload is None:  # the procedure reports either
+        return loaded, made
+    robot = model.robot
+    if made is None:
+        task = progress.add_task("reversal mask: which drives stick", total=None)
+        a, b = (make_design(x.prepared, bp, form, robot) for x in loaded[:2])
+        # with the errors-in-variables test's sums, as the sign's choice fits (the procedure
+        # takes this fit when nothing is masked)
+        fit = ml_fit(a, b, payload, parallel=long_runs([a, b]), influence=True)
+        made = FitMade(form, loaded[0].prepared, loaded[1].prepared, fit)
+        progress.remove_task(task)
+    kappa = made.fit.kappa
+    drives = stuck_drives(kappa)
+    note = gate_note(robot, kappa, drives)
+    if drives:
+        again = replace(req, reversal_mask=AUTO_TAPER_S, reversal_mask_drives=drives)
+        loaded = load_and_prepare(model, specs, again, progress)[1]
+        made = None  # the procedure fits the masked runs
+    # the prepared runs stay the same objects: a fit made of them still serves the procedure
+    return [replace(x, info=replace(x.info, notes=[*x.info.notes, note])) for x in loaded], made
 
 
 def _run_identify(req: IdentifyRequest) -> IdentifyOutcome:
@@ -379,9 +426,20 @@ def _run_identify(req: IdentifyRequest) -> IdentifyOutcome:
         bases, loaded = load_and_prepare(model, specs, req, display.progress)
         made = None
         if req.loaded is not None and given is None:
-            loaded, made = _choose_sign(
+            loaded, made, at_cutoff = _choose_sign(
                 model, specs, req, display.progress, robot, form, bases.get(form), loaded
             )
+            if req.reversal_mask_auto:
+                loaded, made = _gate_mask(
+                    model,
+                    specs,
+                    replace(req, sign_at_cutoff=at_cutoff),
+                    display.progress,
+                    form,
+                    bases.get(form),
+                    loaded,
+                    made,
+                )
         prepared = [x.prepared for x in loaded]
         infos = [x.info for x in loaded]
         metas = [x.meta for x in loaded]
@@ -496,6 +554,11 @@ def _summary(outcome: IdentifyOutcome, robot_names: list[str]) -> str:
     return "\n".join(lines)
 
 
+def _mask_taper(value: float | str | None) -> float | None:
+    """``--reversal-mask``'s taper: None for ``auto`` (the gate's taper comes later)."""
+    return None if value is None or value == MASK_AUTO else float(value)
+
+
 def identify_command(args: argparse.Namespace) -> int:
     """Handler of ``drivegain identify`` (options in :mod:`drivegain.cli`)."""
     req = IdentifyRequest(
@@ -512,7 +575,8 @@ def identify_command(args: argparse.Namespace) -> int:
         alpha=args.alpha,
         cutoff=args.cutoff,
         sign_cutoff=getattr(args, "sign_cutoff", None),
-        reversal_mask=getattr(args, "reversal_mask", None),
+        reversal_mask=_mask_taper(getattr(args, "reversal_mask", None)),
+        reversal_mask_auto=getattr(args, "reversal_mask", None) == MASK_AUTO,
         decimate=args.decimate,
         reference=getattr(args, "reference", None),
         progress=True,

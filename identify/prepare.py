@@ -32,7 +32,13 @@ from drivegain.identify.decimate import (
     first_equal,
     parallel_decimate,
 )
-from drivegain.identify.reversals import reversal_entries, reversal_marks, reversal_mask
+from drivegain.identify.reversals import (
+    coulomb_sources,
+    masked_drives,
+    reversal_entries,
+    reversal_marks,
+    reversal_mask,
+)
 from drivegain.identify.signal import FilterSettings, derivatives
 
 #: Full-rate samples per regressor evaluation and least decimation chunk: the (chunk, n, 86)
@@ -365,12 +371,18 @@ def prepare_recording(
     if settings.reversal_mask_s is not None:
         # Both sides of every equation weighted alike before the decimation, so Y = W χ stays
         # exact without the stretches around reversals (reversals.reversal_mask). The mask is
-        # 0 wherever a zone reaches its group, so no entry keeps a share near a reversal and
-        # no reversal Coulomb column is left to fit.
-        mask = reversal_mask(zones, model.robot, rate_hz, settings.reversal_mask_s)
+        # 0 wherever a zone reaches its group, so no entry of a masked group keeps a share near
+        # a reversal, and no reversal Coulomb column of its velocities is left to fit.
+        drives = settings.reversal_mask_drives
+        mask = reversal_mask(zones, model.robot, rate_hz, settings.reversal_mask_s, drives)
         current = current * mask
-        zones = np.zeros_like(zones)
-        signs = np.zeros_like(signs)
+        masked = masked_drives(model.robot, drives)
+        zones = np.where(masked[None, :], 0.0, zones)
+        # a velocity's reversal Coulomb column goes with the groups it reaches: gone when all
+        # of them are masked (where they are not, its share and column stay)
+        source_reach = coulomb_sources(model.robot)[1]
+        gone = ~np.any(source_reach & ~masked[None, :], axis=1)
+        signs = np.where(gone[None, :], 0.0, signs)
     (c_all, rest_d, zones_d, signs_d) = parallel_decimate(
         [current, rest.astype(float), zones, signs], f, 0, source=src
     )

@@ -29,6 +29,8 @@ gains (:attr:`~drivegain.identify.prepare.PreparedRun.reversal_coulomb`).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 from scipy.sparse.csgraph import connected_components
 
@@ -138,6 +140,15 @@ def source_names(robot: Robot) -> list[str]:
     return names
 
 
+def masked_drives(robot: Robot, drives: Sequence[int] | None) -> np.ndarray:
+    """(n,) bool: the drives :func:`reversal_mask` weights given ``drives``, each with its
+    coupled group (None: all)."""
+    if drives is None:
+        return np.ones(robot.n, dtype=bool)
+    group = coupled_blocks(robot)
+    return np.isin(group, group[np.asarray(drives, dtype=int).reshape(-1)])
+
+
 def coupled_blocks(robot: Robot) -> np.ndarray:
     """Which drives a coupling ties together: the connected groups of the transmission matrix.
 
@@ -151,7 +162,13 @@ def coupled_blocks(robot: Robot) -> np.ndarray:
     return np.asarray(connected_components((k != 0.0) | (k.T != 0.0), directed=False)[1])
 
 
-def reversal_mask(zones: np.ndarray, robot: Robot, rate_hz: float, taper_s: float) -> np.ndarray:
+def reversal_mask(
+    zones: np.ndarray,
+    robot: Robot,
+    rate_hz: float,
+    taper_s: float,
+    drives: Sequence[int] | None = None,
+) -> np.ndarray:
     """Weights that take the equations near reversals out of a fit, at the full rate.
 
     A drive that sticks at a reversal leaves an equation error no column of the model follows
@@ -173,6 +190,9 @@ def reversal_mask(zones: np.ndarray, robot: Robot, rate_hz: float, taper_s: floa
         Sample rate, Hz.
     taper_s
         Width of the rise either side of a zone, s (> 0).
+    drives
+        The drives (from 0) whose coupled groups are weighted; the other groups keep weight 1.
+        None: every group.
 
     Returns
     -------
@@ -182,7 +202,7 @@ def reversal_mask(zones: np.ndarray, robot: Robot, rate_hz: float, taper_s: floa
     Raises
     ------
     ValueError
-        ``taper_s`` or ``rate_hz`` not positive, or ``zones`` not (N, n).
+        ``taper_s`` or ``rate_hz`` not positive, ``zones`` not (N, n), or a drive out of range.
     """
     zones = np.asarray(zones, dtype=float)
     if not (np.isfinite(taper_s) and taper_s > 0.0):
@@ -193,9 +213,15 @@ def reversal_mask(zones: np.ndarray, robot: Robot, rate_hz: float, taper_s: floa
         raise ValueError(f"zones must be (N, {robot.n}), got {zones.shape}")
     width = taper_s * rate_hz  # samples
     group = coupled_blocks(robot)
+    chosen = np.unique(group)
+    if drives is not None:
+        idx = np.asarray(drives, dtype=int).reshape(-1)
+        if np.any((idx < 0) | (idx >= robot.n)):
+            raise ValueError(f"drives are 0 to {robot.n - 1}, got {list(map(int, idx))}")
+        chosen = np.unique(group[idx])
     t = np.arange(zones.shape[0])
     out = np.ones_like(zones)
-    for g in np.unique(group):
+    for g in chosen:
         marked = np.flatnonzero((zones[:, group == g] > 0.0).any(axis=1))
         if marked.size == 0:
             continue

@@ -87,6 +87,9 @@ class FilterSettings:
         weighted out of every fit near its reversals, before the decimation: 0 inside the
         zones, rising over this many seconds either side
         (:func:`~drivegain.identify.reversals.reversal_mask`); None: every equation counts.
+    reversal_mask_drives
+        With ``reversal_mask_s``: the drives (from 0) whose coupled groups get the mask
+        (``--reversal-mask auto`` chooses them); None: every group.
     """
 
     cutoff_hz: float
@@ -97,6 +100,7 @@ class FilterSettings:
     sign_cutoff_hz: float | None = None
     sign_noise_limit: float | None = None
     reversal_mask_s: float | None = None
+    reversal_mask_drives: tuple[int, ...] | None = None
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.cutoff_hz) and self.cutoff_hz > 0):
@@ -120,6 +124,20 @@ class FilterSettings:
         if lim is not None and not (math.isfinite(lim) and lim > 0):
             raise InputError(f"must be a positive fraction, got {lim}", key="sign_noise_limit")
         check_reversal_mask(self.reversal_mask_s)
+        drives = self.reversal_mask_drives
+        if drives is not None:
+            if self.reversal_mask_s is None:
+                raise InputError("needs reversal_mask (a taper)", key="reversal_mask_drives")
+            if (
+                not isinstance(drives, tuple)
+                or not drives
+                or any(isinstance(d, bool) or not isinstance(d, int) or d < 0 for d in drives)
+                or list(drives) != sorted(set(drives))
+            ):
+                raise InputError(
+                    f"must be increasing drive indices from 0, got {drives!r}",
+                    key="reversal_mask_drives",
+                )
 
     @property
     def sign_cutoff(self) -> float:
@@ -214,6 +232,7 @@ def default_filter(
     current_delay: float = 0.0,
     sign_cutoff_hz: float | None = None,
     reversal_mask_s: float | None = None,
+    reversal_mask_drives: tuple[int, ...] | None = None,
 ) -> FilterSettings:
     """Filter settings derived from the sample rate and the trajectory's bandwidth.
 
@@ -240,8 +259,9 @@ def default_filter(
         the Nyquist frequency; None: :data:`SIGN_CUTOFF_MULTIPLE` times the position cut-off,
         at most :data:`SIGN_CUTOFF_RATE_FRACTION` of the rate (never below the cut-off), lowered
         where the encoder is coarse (``sign_noise_limit`` :data:`SIGN_QUANTUM_NOISE`).
-    reversal_mask_s
-        Taper of the reversal mask, s (:class:`FilterSettings`); None: no mask.
+    reversal_mask_s, reversal_mask_drives
+        Taper of the reversal mask, s, and the drives it weighs (:class:`FilterSettings`);
+        None: no mask, every group.
 
     Raises
     ------
@@ -299,6 +319,7 @@ def default_filter(
         sign_cutoff_hz=float(sign_cutoff_hz),
         sign_noise_limit=noise_limit,
         reversal_mask_s=None if reversal_mask_s is None else float(reversal_mask_s),
+        reversal_mask_drives=reversal_mask_drives,
     )
 
 

@@ -32,6 +32,8 @@ from drivegain.identify.compare import (
 from drivegain.identify.design import Design, make_design
 from drivegain.identify.gains import DEFAULT_ALPHA_GRID, Estimator, estimate_gains
 from drivegain.identify.hac import bartlett_lag, long_run_covariance, sandwich
+from drivegain.identify.maskgate import AUTO_TAPER_S, stuck_drives
+from drivegain.identify.ml import ml_fit
 from drivegain.identify.mlmodel import Whitening, run_pair, scores, whitened_block
 from drivegain.identify.signchoice import at_position_cutoff, choose_sign, has_choice
 from drivegain.validation.cell import closed_loop_three
@@ -360,17 +362,34 @@ def run_designs(world: World, runs: Sequence[SimRun]) -> list[Design]:
     """The coupled designs of simulated runs (a, b, then any others), prepared as ``identify``
     prepares logs: when the noise rule kept the Coulomb sign above the position cut-off, the
     runs are prepared with the sign at the position cut-off too and the likelier preparation of
-    runs a and b is kept for all (:func:`~drivegain.identify.signchoice.choose_sign`)."""
+    runs a and b is kept for all (:func:`~drivegain.identify.signchoice.choose_sign`). With
+    :attr:`~.world.World.mask_auto`, then prepared again with the reversal mask on the drives
+    whose κ̂ says they stick (:mod:`~drivegain.identify.maskgate`), when any does."""
     prepared = [prepare(world, r) for r in runs]
     designs = [make_design(p, world.base, world.form, world.robot) for p in prepared]
-    if len(designs) < 2 or not has_choice(p.filter for p in prepared):
+    if len(designs) < 2:
         return designs
-    # the world's own settings, as identify's second reading asks its request's again
-    other = at_position_cutoff(world.settings) or world.settings
-    there = replace(world, settings=other)  # prepare() sets each run's current delay
-    alt = [make_design(prepare(there, r), world.base, world.form, world.robot) for r in runs]
-    choice = choose_sign([(designs[0], designs[1]), (alt[0], alt[1])], world.payload)
-    return designs if choice.chosen == 0 else alt
+    fit = None
+    if has_choice(p.filter for p in prepared):
+        # the world's own settings, as identify's second reading asks its request's again
+        other = at_position_cutoff(world.settings) or world.settings
+        there = replace(world, settings=other)  # prepare() sets each run's current delay
+        alt = [make_design(prepare(there, r), world.base, world.form, world.robot) for r in runs]
+        choice = choose_sign([(designs[0], designs[1]), (alt[0], alt[1])], world.payload)
+        fit = choice.fit
+        if choice.chosen != 0:
+            designs, world = alt, there
+    if not world.mask_auto:
+        return designs
+    # --reversal-mask auto: the mask on the drives whose κ̂ says they stick (maskgate)
+    if fit is None:
+        fit = ml_fit(designs[0], designs[1], world.payload)
+    drives = stuck_drives(fit.kappa)
+    if not drives:
+        return designs
+    masked = replace(world.settings, reversal_mask_s=AUTO_TAPER_S, reversal_mask_drives=drives)
+    there = replace(world, settings=masked)
+    return [make_design(prepare(there, r), world.base, world.form, world.robot) for r in runs]
 
 
 def run_seed(

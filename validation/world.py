@@ -97,6 +97,9 @@ class World(Tx40):
         Filter and decimation settings of the preparation.
     t, q, qd, qdd
         Sample times (s) and the exact trajectory, (N, n): rad, rad/s, rad/s².
+    mask_auto
+        Prepare the runs as ``identify --reversal-mask auto`` does
+        (:func:`~drivegain.validation.estimators.run_designs`); False: as ``settings`` say.
     """
 
     fourier: FourierTrajectory
@@ -107,6 +110,7 @@ class World(Tx40):
     q: np.ndarray
     qd: np.ndarray
     qdd: np.ndarray
+    mask_auto: bool = False
 
     @property
     def form(self) -> WristFriction:

@@ -119,8 +119,8 @@ def test_identify_reuses_the_sign_choice_fit_and_reports_the_same(
     choose = pipeline._choose_sign
 
     def without_fit(*a, **kw):
-        loaded, _ = choose(*a, **kw)
-        return loaded, None
+        loaded, _, at_cutoff = choose(*a, **kw)
+        return loaded, None, at_cutoff
 
     monkeypatch.setattr(pipeline, "_choose_sign", without_fit)
     assert main([*args, "--out", str(tmp_path / "fitted")]) == 0
