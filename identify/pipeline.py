@@ -353,8 +353,7 @@ def _choose_sign(
     choice = choose_sign(pairs, payload, parallel=long_runs(list(pairs[0])))
     progress.remove_task(task)
     kept = loaded if choice.chosen == 0 else other
-    note = choice.note()
-    runs = [replace(x, info=replace(x.info, notes=[*x.info.notes, note])) for x in kept]
+    runs = _with_note(kept, choice.note())
     # the prepared runs themselves (not copies): the procedure checks that they are its own
     made = (
         None
@@ -387,9 +386,14 @@ def _gate_mask(
         a, b = (make_design(x.prepared, bp, form, robot) for x in loaded[:2])
         # with the errors-in-variables test's sums, as the sign's choice fits (the procedure
         # takes this fit when nothing is masked)
-        fit = ml_fit(a, b, payload, parallel=long_runs([a, b]), influence=True)
+        try:
+            fit = ml_fit(a, b, payload, parallel=long_runs([a, b]), influence=True)
+        except IdentificationError as exc:  # the procedure's own fit reports it, if it needs one
+            note = f"reversal mask (auto): not chosen, the unmasked fit failed ({exc})"
+            return _with_note(loaded, note), None
+        finally:
+            progress.remove_task(task)
         made = FitMade(form, loaded[0].prepared, loaded[1].prepared, fit)
-        progress.remove_task(task)
     kappa = made.fit.kappa
     drives = stuck_drives(kappa)
     note = gate_note(robot, kappa, drives)
@@ -398,7 +402,12 @@ def _gate_mask(
         loaded = load_and_prepare(model, specs, again, progress)[1]
         made = None  # the procedure fits the masked runs
     # the prepared runs stay the same objects: a fit made of them still serves the procedure
-    return [replace(x, info=replace(x.info, notes=[*x.info.notes, note])) for x in loaded], made
+    return _with_note(loaded, note), made
+
+
+def _with_note(loaded: list[Loaded], note: str) -> list[Loaded]:
+    """``loaded`` with ``note`` added to every run's notes (the same prepared runs)."""
+    return [replace(x, info=replace(x.info, notes=[*x.info.notes, note])) for x in loaded]
 
 
 def _run_identify(req: IdentifyRequest) -> IdentifyOutcome:

@@ -17,7 +17,7 @@ from drivegain.cli import main
 from drivegain.config import resource_path
 from drivegain.config.robot import WristFriction, load_robot
 from drivegain.dynamics.params import truth_vector
-from drivegain.errors import InputError
+from drivegain.errors import IdentificationError, InputError
 from drivegain.identify import pipeline, prepare
 from drivegain.identify.design import make_design
 from drivegain.identify.maskgate import AUTO_TAPER_S, gate_note, stuck_drives
@@ -280,3 +280,28 @@ def test_identify_auto_masks_only_where_a_drive_sticks(
     g = np.array([x["value"] for x in doc["gains"]])
     s = np.array([x["std"] for x in doc["gains"]])
     assert np.all(np.abs((g - world.truth.gains) / s) < 4.0)
+
+
+def test_identify_auto_goes_on_unmasked_when_its_own_fit_fails(
+    run_logs, tmp_path, monkeypatch
+) -> None:
+    """With no fit from the sign's choice the gate fits runs a and b itself; when that fails
+    it masks nothing and says so, and the procedure goes on (its own fit decides)."""
+    logs = run_logs(tmp_path, {"a": 7, "b": 8}, seconds=12.0)
+    choose = pipeline._choose_sign
+
+    def without_fit(*a, **kw):
+        loaded, _, at_cutoff = choose(*a, **kw)
+        return loaded, None, at_cutoff
+
+    def fails(*a, **kw):
+        raise IdentificationError("the runs do not determine the unknowns")
+
+    monkeypatch.setattr(pipeline, "_choose_sign", without_fit)
+    monkeypatch.setattr(pipeline, "ml_fit", fails)
+    out = tmp_path / "out"
+    assert main([*_identify_argv(logs), "--out", str(out), "--reversal-mask", "auto"]) == 0
+    doc = json.loads((out / "report.json").read_text())
+    assert [r["filter"]["reversal_mask_s"] for r in doc["runs"]] == [None, None]
+    note = "reversal mask (auto): not chosen, the unmasked fit failed"
+    assert all(any(note in n for n in r["notes"]) for r in doc["runs"])
