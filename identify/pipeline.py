@@ -24,25 +24,21 @@ from typing import Any
 
 from drivegain.config.payload import Payload, load_payload
 from drivegain.config.robot import Robot, WristFriction, load_robot
-from drivegain.dynamics.base import BaseParameters
-from drivegain.dynamics.model import RobotModel, build_model
+from drivegain.dynamics.model import build_model
 from drivegain.errors import IdentificationError, InputError
 from drivegain.identify import consistent_report as cr
+from drivegain.identify import prepchoice
 from drivegain.identify.blas import limited_blas_threads
 from drivegain.identify.bootstrap import MIN_REPLICATES
-from drivegain.identify.design import make_design
 from drivegain.identify.diagnose import current_warnings, other_channel_hint
 from drivegain.identify.gains import Estimator
-from drivegain.identify.loading import Loaded, load_and_prepare
-from drivegain.identify.maskgate import AUTO_TAPER_S, MASK_AUTO, gate_note, stuck_drives
-from drivegain.identify.ml import ml_fit
+from drivegain.identify.loading import load_and_prepare
+from drivegain.identify.maskgate import MASK_AUTO
 from drivegain.identify.procedure import (
-    FitMade,
     GivenGains,
     Options,
     Problem,
     ProcedureResult,
-    long_runs,
     run_procedure,
 )
 from drivegain.identify.report import FORM_MARGIN, markdown_report, report_json
@@ -54,7 +50,6 @@ from drivegain.identify.runs import (
     read_header,
 )
 from drivegain.identify.signal import check_reversal_mask
-from drivegain.identify.signchoice import choose_sign, has_choice
 
 # --------------------------------------------------------------------------------------------
 # Inputs
@@ -322,94 +317,6 @@ def run_identify(req: IdentifyRequest) -> IdentifyOutcome:
             plots.stop_worker()
 
 
-def _choose_sign(
-    model: RobotModel,
-    specs: list[tuple[Path, str, Payload | None]],
-    req: IdentifyRequest,
-    progress: Any,
-    robot: Robot,
-    form: WristFriction,
-    bp: BaseParameters | None,
-    loaded: list[Loaded],
-) -> tuple[list[Loaded], FitMade | None, bool]:
-    """``loaded``, or the runs prepared again with the Coulomb sign at the position cut-off
-    when that explains runs a and b's currents better (:mod:`.signchoice`); the report's runs
-    say which, and by how much. With them the kept preparation's fit of runs a and b, for the
-    gains' estimate (None when there was no choice), and whether the second preparation was
-    kept. ``bp``: the friction form's base parameters (None: the procedure reports the form
-    missing). Both preparations are held until the choice: peak memory about twice one's."""
-    payload = loaded[1].prepared.payload
-    if bp is None or payload is None:  # the procedure reports either
-        return loaded, None, False
-    if not has_choice(x.prepared.filter for x in loaded):
-        return loaded, None, False
-    # Every run again, not only a and b: the stored columns depend on all runs' payloads.
-    _, other = load_and_prepare(model, specs, replace(req, sign_at_cutoff=True), progress)
-    pairs = [
-        (make_design(x[0].prepared, bp, form, robot), make_design(x[1].prepared, bp, form, robot))
-        for x in (loaded, other)
-    ]
-    task = progress.add_task("Coulomb sign: which velocity", total=None)
-    choice = choose_sign(pairs, payload, parallel=long_runs(list(pairs[0])))
-    progress.remove_task(task)
-    kept = loaded if choice.chosen == 0 else other
-    runs = _with_note(kept, choice.note())
-    # the prepared runs themselves (not copies): the procedure checks that they are its own
-    made = (
-        None
-        if choice.fit is None
-        else FitMade(form, kept[0].prepared, kept[1].prepared, choice.fit)
-    )
-    return runs, made, choice.chosen != 0
-
-
-def _gate_mask(
-    model: RobotModel,
-    specs: list[tuple[Path, str, Payload | None]],
-    req: IdentifyRequest,
-    progress: Any,
-    form: WristFriction,
-    bp: BaseParameters | None,
-    loaded: list[Loaded],
-    made: FitMade | None,
-) -> tuple[list[Loaded], FitMade | None]:
-    """``--reversal-mask auto``: the runs prepared again with the reversal mask on the drives
-    whose κ̂ says they stick (:mod:`.maskgate`), or ``loaded`` itself when none does; each run
-    notes the choice. ``made``: the unmasked preparation's fit of runs a and b when the sign's
-    choice made one (otherwise made here, and handed on when nothing is masked)."""
-    payload = loaded[1].prepared.payload
-    if bp is None or payload is None:  # the procedure reports either
-        return loaded, made
-    robot = model.robot
-    if made is None:
-        task = progress.add_task("reversal mask: which drives stick", total=None)
-        a, b = (make_design(x.prepared, bp, form, robot) for x in loaded[:2])
-        # with the errors-in-variables test's sums, as the sign's choice fits (the procedure
-        # takes this fit when nothing is masked)
-        try:
-            fit = ml_fit(a, b, payload, parallel=long_runs([a, b]), influence=True)
-        except IdentificationError as exc:  # the procedure's own fit reports it, if it needs one
-            note = f"reversal mask (auto): not chosen, the unmasked fit failed ({exc})"
-            return _with_note(loaded, note), None
-        finally:
-            progress.remove_task(task)
-        made = FitMade(form, loaded[0].prepared, loaded[1].prepared, fit)
-    kappa = made.fit.kappa
-    drives = stuck_drives(kappa)
-    note = gate_note(robot, kappa, drives)
-    if drives:
-        again = replace(req, reversal_mask=AUTO_TAPER_S, reversal_mask_drives=drives)
-        loaded = load_and_prepare(model, specs, again, progress)[1]
-        made = None  # the procedure fits the masked runs
-    # the prepared runs stay the same objects: a fit made of them still serves the procedure
-    return _with_note(loaded, note), made
-
-
-def _with_note(loaded: list[Loaded], note: str) -> list[Loaded]:
-    """``loaded`` with ``note`` added to every run's notes (the same prepared runs)."""
-    return [replace(x, info=replace(x.info, notes=[*x.info.notes, note])) for x in loaded]
-
-
 def _run_identify(req: IdentifyRequest) -> IdentifyOutcome:
     _check_request(req)
     robot = load_robot(req.robot, acquisition=False)  # encoder counts etc. not needed here
@@ -435,11 +342,11 @@ def _run_identify(req: IdentifyRequest) -> IdentifyOutcome:
         bases, loaded = load_and_prepare(model, specs, req, display.progress)
         made = None
         if req.loaded is not None and given is None:
-            loaded, made, at_cutoff = _choose_sign(
+            loaded, made, at_cutoff = prepchoice.sign_choice(
                 model, specs, req, display.progress, robot, form, bases.get(form), loaded
             )
             if req.reversal_mask_auto:
-                loaded, made = _gate_mask(
+                loaded, made = prepchoice.mask_choice(
                     model,
                     specs,
                     replace(req, sign_at_cutoff=at_cutoff),

@@ -18,7 +18,7 @@ from drivegain.config import resource_path
 from drivegain.config.robot import WristFriction, load_robot
 from drivegain.dynamics.params import truth_vector
 from drivegain.errors import IdentificationError, InputError
-from drivegain.identify import pipeline, prepare
+from drivegain.identify import prepare, prepchoice
 from drivegain.identify.design import make_design
 from drivegain.identify.maskgate import AUTO_TAPER_S, gate_note, stuck_drives
 from drivegain.identify.prepare import prepare_recording
@@ -270,7 +270,7 @@ def test_identify_auto_masks_only_where_a_drive_sticks(
     doc = json.loads((out / "report.json").read_text())
     assert [r["filter"]["reversal_mask_s"] for r in doc["runs"]] == [None, None]
     assert all(any("no drive sticks" in n for n in r["notes"]) for r in doc["runs"])
-    monkeypatch.setattr(pipeline, "stuck_drives", lambda kappa: (4,))
+    monkeypatch.setattr(prepchoice, "stuck_drives", lambda kappa: (4,))
     forced = tmp_path / "forced"
     assert main([*argv, "--out", str(forced), "--reversal-mask", "auto"]) == 0
     doc = json.loads((forced / "report.json").read_text())
@@ -288,7 +288,7 @@ def test_identify_auto_goes_on_unmasked_when_its_own_fit_fails(
     """With no fit from the sign's choice the gate fits runs a and b itself; when that fails
     it masks nothing and says so, and the procedure goes on (its own fit decides)."""
     logs = run_logs(tmp_path, {"a": 7, "b": 8}, seconds=12.0)
-    choose = pipeline._choose_sign
+    choose = prepchoice.sign_choice
 
     def without_fit(*a, **kw):
         loaded, _, at_cutoff = choose(*a, **kw)
@@ -297,8 +297,8 @@ def test_identify_auto_goes_on_unmasked_when_its_own_fit_fails(
     def fails(*a, **kw):
         raise IdentificationError("the runs do not determine the unknowns")
 
-    monkeypatch.setattr(pipeline, "_choose_sign", without_fit)
-    monkeypatch.setattr(pipeline, "ml_fit", fails)
+    monkeypatch.setattr(prepchoice, "sign_choice", without_fit)
+    monkeypatch.setattr(prepchoice, "ml_fit", fails)
     out = tmp_path / "out"
     assert main([*_identify_argv(logs), "--out", str(out), "--reversal-mask", "auto"]) == 0
     doc = json.loads((out / "report.json").read_text())

@@ -17,7 +17,7 @@ import pytest
 from drivegain.cli import main
 from drivegain.config import resource_path
 from drivegain.errors import UsageError
-from drivegain.identify import pipeline, procedure
+from drivegain.identify import prepchoice, procedure
 from drivegain.identify.design import make_design
 from drivegain.identify.gains import Estimator, estimate_gains
 from drivegain.identify.ml import ml_fit
@@ -116,18 +116,18 @@ def test_identify_reuses_the_sign_choice_fit_and_reports_the_same(
     assert any("chosen by the runs' likelihood" in note for note in notes), notes
     assert given == [True]
 
-    choose = pipeline._choose_sign
+    choose = prepchoice.sign_choice
 
     def without_fit(*a, **kw):
         loaded, _, at_cutoff = choose(*a, **kw)
         return loaded, None, at_cutoff
 
-    monkeypatch.setattr(pipeline, "_choose_sign", without_fit)
+    monkeypatch.setattr(prepchoice, "sign_choice", without_fit)
     assert main([*args, "--out", str(tmp_path / "fitted")]) == 0
     assert given == [True, False]
     assert _report(tmp_path / "fitted") == reused
 
     # The paper's estimator makes its own fit: no ML fit is handed to it.
-    monkeypatch.setattr(pipeline, "_choose_sign", choose)
+    monkeypatch.setattr(prepchoice, "sign_choice", choose)
     assert main([*args, "--estimator", "paper", "--out", str(tmp_path / "paper")]) == 0
     assert given == [True, False, False]
