@@ -142,11 +142,20 @@ def source_names(robot: Robot) -> list[str]:
 
 def masked_drives(robot: Robot, drives: Sequence[int] | None) -> np.ndarray:
     """(n,) bool: the drives :func:`reversal_mask` weights given ``drives``, each with its
-    coupled group (None: all)."""
+    coupled group (None: all).
+
+    Raises
+    ------
+    ValueError
+        A drive out of range.
+    """
     if drives is None:
         return np.ones(robot.n, dtype=bool)
+    idx = np.asarray(drives, dtype=int).reshape(-1)
+    if np.any((idx < 0) | (idx >= robot.n)):
+        raise ValueError(f"drives are 0 to {robot.n - 1}, got {list(map(int, idx))}")
     group = coupled_blocks(robot)
-    return np.isin(group, group[np.asarray(drives, dtype=int).reshape(-1)])
+    return np.isin(group, group[idx])
 
 
 def coupled_blocks(robot: Robot) -> np.ndarray:
@@ -213,12 +222,7 @@ def reversal_mask(
         raise ValueError(f"zones must be (N, {robot.n}), got {zones.shape}")
     width = taper_s * rate_hz  # samples
     group = coupled_blocks(robot)
-    chosen = np.unique(group)
-    if drives is not None:
-        idx = np.asarray(drives, dtype=int).reshape(-1)
-        if np.any((idx < 0) | (idx >= robot.n)):
-            raise ValueError(f"drives are 0 to {robot.n - 1}, got {list(map(int, idx))}")
-        chosen = np.unique(group[idx])
+    chosen = np.unique(group[masked_drives(robot, drives)])
     t = np.arange(zones.shape[0])
     out = np.ones_like(zones)
     for g in chosen:
