@@ -170,7 +170,10 @@ def with_trajectory(world: World, fourier: FourierTrajectory) -> World:
         trajectory_json=b"",
         # the filters follow the trajectory's bandwidth; the reversal mask is the world's choice
         settings=default_filter(
-            world.rate_hz, bandwidth, reversal_mask_s=world.settings.reversal_mask_s
+            world.rate_hz,
+            bandwidth,
+            reversal_mask_s=world.settings.reversal_mask_s,
+            reversal_mask_drives=world.settings.reversal_mask_drives,
         ),
         t=t,
         q=q,

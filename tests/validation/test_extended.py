@@ -80,6 +80,11 @@ def test_random_excitation_is_per_seed_and_inside_the_limits(world: World) -> No
     assert np.all(np.abs(qdd) <= robot.acceleration_limits)
     # The exact scenarios keep the shipped excitation.
     assert seed_world(world, SCENARIOS[0], 3) is world
+    # The filters follow the drawn trajectory; the reversal mask stays the world's choice.
+    chosen = replace(world.settings, reversal_mask_s=0.1, reversal_mask_drives=(0, 4))
+    drawn = seed_world(replace(world, settings=chosen, mask_auto=True), RANDOM, 0)
+    assert drawn.settings.reversal_mask_s == 0.1 and drawn.mask_auto
+    assert drawn.settings.reversal_mask_drives == (0, 4)
 
 
 def test_closed_loop_tracks_the_trajectory_with_the_true_currents(world: World) -> None:
