@@ -2,8 +2,9 @@
 
 A drive in closed loop stops at each reversal and catches up after it; the fit's κ̂ (the
 variance its entries near reversals add, relative to the others', :mod:`.ml`) is what shows it.
-On the study's exact-tracking runs κ̂ stays below 0.6 (one random excitation in 24 reached 4.7
-on j3), on its closed-loop drives it is 1.7-3.9 on every drive (docs/model.md, "Weighting the
+On the study's exact-tracking runs (seeds 0-5 of four scenarios) κ̂ stays below 0.6 but on one
+of the 12 random excitations (2.1 on j1, 4.7 on j3); on its closed-loop drives it is 1.7-3.9
+(optimised excitation) and 2.5-12.5 (random) on every drive (docs/model.md, "Weighting the
 reversals out before the decimation"). Where nothing sticks the mask only discards data, so the
 gate masks the coupled groups of the drives whose κ̂ reaches Case 2's threshold
 (:data:`~.leaveout.MISFIT_KAPPA`), from the unmasked preparation's fit of runs a and b, and
